@@ -1,0 +1,41 @@
+# One command each: `make demo` runs the main job on built-in demo data, `make test` runs the tests.
+# Both set everything up on a fresh machine with Python 3.11 (venv, Python packages, libusb for open3d).
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+SUDO   := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+TEST_ARGS ?= -m "not slow"
+
+.PHONY: setup demo test test-slow lint bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@# open3d imports only with Debian's libusb-1.0-0 present
+	@ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || \
+	  ( echo "installing libusb-1.0-0 (needed by open3d)"; \
+	    $(SUDO) apt-get install -y -q libusb-1.0-0 || \
+	    ( $(SUDO) apt-get update -q && $(SUDO) apt-get install -y -q libusb-1.0-0 ) )
+	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e ".[dev]"
+	@touch $(STAMP)
+
+demo: setup
+	$(BIN)/breastmodel demo --out demo_out
+
+test: setup
+	$(BIN)/python -m pytest -q $(TEST_ARGS)
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -m slow
+
+lint: setup
+	$(BIN)/ruff check .
+
+bench: setup
+	$(BIN)/python bench/gravity.py
+
+clean:
+	rm -rf $(VENV) demo_out .pytest_cache

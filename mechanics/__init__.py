@@ -1,0 +1,1 @@
+"""Finite-element mechanics of soft tissue: plain arrays in, plain state out (numpy/scipy only)."""

@@ -1,0 +1,125 @@
+"""The tetrahedral mesh that passes from meshing to mechanics: an immutable value.
+
+Region codes are fixed project-wide (see ``REGIONS``); named sets carry everything the
+effects need (skin faces, interface faces, fixed nodes, ligament anchor pairs).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from types import MappingProxyType
+
+import numpy as np
+
+#: Region code of each tissue in ``Mesh.region``. Label maps use 1 breast, 2 muscle, 3 gland.
+REGIONS: Mapping[str, int] = MappingProxyType(
+    {
+        "breast_left": 1,
+        "muscle": 2,
+        "breast_right": 3,
+        "gland_left": 4,
+        "gland_right": 5,
+    }
+)
+BREAST_REGIONS = (1, 3, 4, 5)
+
+
+def _frozen(a, dtype) -> np.ndarray:
+    out = np.array(a, dtype=dtype, copy=True)
+    out.setflags(write=False)
+    return out
+
+
+def _frozen_map(m: Mapping[str, np.ndarray] | None, dtype) -> Mapping[str, np.ndarray]:
+    return MappingProxyType({str(k): _frozen(v, dtype) for k, v in (m or {}).items()})
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """Linear tetrahedral mesh in physical mm.
+
+    Parameters
+    ----------
+    nodes : (N, 3) float64, mm
+    tets : (M, 4) int64, node indices, positive orientation (det of edge matrix > 0)
+    region : (M,) int32, codes from ``REGIONS``
+    node_sets : name -> (k,) int64 node indices, e.g. ``"fixed"``, ``"skin_ends"``
+    face_sets : name -> (k, 3) int64 triangles, e.g. ``"skin"``, ``"interface"``; ordered so
+        that the right-hand normal points out of the breast (skin) or from muscle to breast
+        (interface)
+    node_pairs : name -> (k, 2) int64 (breast node, muscle node), e.g. ``"ligament_medial"``
+    """
+
+    nodes: np.ndarray
+    tets: np.ndarray
+    region: np.ndarray
+    node_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
+    face_sets: Mapping[str, np.ndarray] = field(default_factory=dict)
+    node_pairs: Mapping[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self):
+        nodes = _frozen(self.nodes, np.float64)
+        tets = _frozen(self.tets, np.int64)
+        region = _frozen(self.region, np.int32)
+        if nodes.ndim != 2 or nodes.shape[1] != 3:
+            raise ValueError(f"mesh: nodes must be (N, 3), got {nodes.shape}")
+        if tets.ndim != 2 or tets.shape[1] != 4:
+            raise ValueError(f"mesh: tets must be (M, 4), got {tets.shape}")
+        if region.shape != (len(tets),):
+            raise ValueError(f"mesh: region must be ({len(tets)},), got {region.shape}")
+        if len(tets) and (tets.min() < 0 or tets.max() >= len(nodes)):
+            raise ValueError("mesh: tets reference nodes that do not exist")
+        if not np.all(np.isfinite(nodes)):
+            raise ValueError("mesh: nodes contain NaN or inf")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "tets", tets)
+        object.__setattr__(self, "region", region)
+        object.__setattr__(self, "node_sets", _frozen_map(self.node_sets, np.int64))
+        object.__setattr__(self, "face_sets", _frozen_map(self.face_sets, np.int64))
+        object.__setattr__(self, "node_pairs", _frozen_map(self.node_pairs, np.int64))
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    def with_nodes(self, nodes: np.ndarray) -> Mesh:
+        """Same topology and sets on new node positions (mm)."""
+        return replace(self, nodes=nodes)
+
+    def signed_volumes(self, nodes: np.ndarray | None = None) -> np.ndarray:
+        """(M,) signed tet volumes in mm^3 (positive for correctly oriented tets)."""
+        x = self.nodes if nodes is None else np.asarray(nodes, dtype=np.float64)
+        e = x[self.tets[:, 1:]] - x[self.tets[:, :1]]
+        return np.linalg.det(e) / 6.0
+
+    def save_npz(self, path: str | Path) -> None:
+        """Write the mesh with all sets to one ``.npz`` (lossless, for caching)."""
+        arrays = {"nodes": self.nodes, "tets": self.tets, "region": self.region}
+        for kind in ("node_sets", "face_sets", "node_pairs"):
+            for k, v in getattr(self, kind).items():
+                arrays[f"{kind}/{k}"] = v
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp.npz")
+        np.savez_compressed(tmp, **arrays)
+        tmp.replace(path)
+
+    @classmethod
+    def load_npz(cls, path: str | Path) -> Mesh:
+        """Read a mesh written by :meth:`save_npz`."""
+        with np.load(path) as z:
+            sets: dict[str, dict[str, np.ndarray]] = {
+                "node_sets": {},
+                "face_sets": {},
+                "node_pairs": {},
+            }
+            for key in z.files:
+                if "/" in key:
+                    kind, name = key.split("/", 1)
+                    sets[kind][name] = z[key]
+            return cls(nodes=z["nodes"], tets=z["tets"], region=z["region"], **sets)

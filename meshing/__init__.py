@@ -1,0 +1,1 @@
+"""meshing stage of the breast-modelling toolkit."""

@@ -1,0 +1,1 @@
+"""registration stage of the breast-modelling toolkit."""

@@ -1,0 +1,5 @@
+"""Shared fixtures: a zoo of tiny meshes lives in tests/zoo.py."""
+
+import matplotlib
+
+matplotlib.use("Agg")
