@@ -25,7 +25,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        module = importlib.import_module(f"breastmodel.commands.{name}")
+        try:
+            module = importlib.import_module(f"breastmodel.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"breastmodel.commands.{name}":
+                raise
+            continue  # a command not installed in this build
         p = module.add_parser(sub)
         p.set_defaults(_run=module.run)
     return parser
