@@ -1,0 +1,191 @@
+"""Stress-free (unloaded) geometry: find reference positions X whose loaded shape matches data.
+
+Two methods, compared in ``bench/stress_free.py``:
+
+- :func:`paper_fixed_point` — the paper's algorithm (Mîra et al., after Eiben et al.): simulate
+  the loaded position from the current estimate, measure each active skin node's distance to
+  the measured surface, impose a fraction ``lam`` of that correction on the estimate as a
+  prescribed displacement (a linear-elastic mesh-motion solve moves the interior along),
+  repeat while the mean error improves by more than ``min_improvement``.
+- :func:`inverse_fixed_point` — the full-field inverse (Sellier's fixed point,
+  X <- X + (x_target - x(X))) when every node's loaded position is known, as it is for the
+  position the mesh was built from, accelerated with Anderson mixing (Walker & Ni 2011).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from mechanics.model import Model, build_model
+from mechanics.solver import SolverError, SolverOptions, solve
+from mechanics.state import State
+
+log = logging.getLogger("mechanics.stress_free")
+
+
+@dataclass(frozen=True, eq=False)
+class StressFreeResult:
+    """X : (N, 3) stress-free positions, mm; state : the loaded solve from X;
+    history : per iteration ``{"iteration", "mean_error", "max_error", "newton", "time"}``
+    (errors in mm); converged : the stopping criterion was met."""
+
+    X: np.ndarray
+    state: State
+    history: tuple[dict, ...]
+    converged: bool
+    method: str
+
+
+def _forward(model: Model, X: np.ndarray, u0: np.ndarray | None, options: SolverOptions) -> State:
+    return solve(model, X=X, u0=u0, options=options)
+
+
+def _inverted(model: Model, X: np.ndarray) -> bool:
+    return bool(np.any(model.mesh.signed_volumes(X) <= 0.0))
+
+
+def inverse_fixed_point(
+    model: Model,
+    x_target: np.ndarray,
+    *,
+    tol: float = 1e-3,
+    max_iter: int = 50,
+    anderson: int = 5,
+    options: SolverOptions = SolverOptions(),
+    callback: Callable[[dict], None] | None = None,
+) -> StressFreeResult:
+    """Reference positions whose loaded configuration under ``model`` is ``x_target``.
+
+    Parameters
+    ----------
+    model : the loaded model (gravity, supports, effects) of the measured position
+    x_target : (N, 3) measured loaded node positions, mm (typically ``model.mesh.nodes``)
+    tol : stop when the largest nodal mismatch |x(X) - x_target| is below this, mm
+    max_iter : forward solves allowed
+    anderson : memory of Anderson mixing; 0 gives the plain fixed point
+    callback : called with each iteration's history row (progress reporting)
+    """
+    x_target = np.asarray(x_target, np.float64)
+    X = x_target.copy()
+    u = None
+    V: list[np.ndarray] = []
+    F: list[np.ndarray] = []
+    history: list[dict] = []
+    state = None
+    t0 = time.perf_counter()
+    for it in range(1, max_iter + 1):
+        try:
+            state = _forward(model, X, u, options)
+        except SolverError as exc:
+            if not history:
+                raise
+            # The accelerated guess went too far: step back half-way to the last good X.
+            log.warning("inverse: forward solve failed (%s); damping the update", exc)
+            X = 0.5 * (X + V[-1].reshape(X.shape))
+            V.clear()
+            F.clear()
+            continue
+        u = state.u
+        f = (x_target - state.x).reshape(-1)
+        err = np.linalg.norm(f.reshape(-1, 3), axis=1)
+        row = {"iteration": it, "mean_error": float(err.mean()), "max_error": float(err.max()),
+               "newton": state.newton_iterations, "time": time.perf_counter() - t0}
+        history.append(row)
+        if callback:
+            callback(row)
+        if row["max_error"] < tol:
+            return StressFreeResult(X, state, tuple(history), True, "inverse_fixed_point")
+        v = X.reshape(-1)
+        V.append(v.copy())
+        F.append(f.copy())
+        if len(V) > anderson + 1:
+            V.pop(0)
+            F.pop(0)
+        new = v + f
+        if anderson and len(V) > 1:
+            dF = np.stack([F[i + 1] - F[i] for i in range(len(F) - 1)], axis=1)
+            dG = np.stack([(V[i + 1] + F[i + 1]) - (V[i] + F[i]) for i in range(len(V) - 1)],
+                          axis=1)
+            gamma, *_ = np.linalg.lstsq(dF, f, rcond=None)
+            new = new - dG @ gamma
+        X_new = new.reshape(-1, 3)
+        if _inverted(model, X_new):
+            X_new = (v + f).reshape(-1, 3)
+            V.clear()
+            F.clear()
+        X = X_new
+    return StressFreeResult(X, state, tuple(history), False, "inverse_fixed_point")
+
+
+def paper_fixed_point(
+    model: Model,
+    target: Callable[[np.ndarray], np.ndarray],
+    active: np.ndarray,
+    anchored: np.ndarray,
+    *,
+    X0: np.ndarray | None = None,
+    lam: float = 0.5,
+    min_improvement: float = 0.01,
+    max_iter: int = 30,
+    options: SolverOptions = SolverOptions(),
+    callback: Callable[[dict], None] | None = None,
+) -> StressFreeResult:
+    """The paper's fixed point on a measured surface (Mîra et al., Fig. 2).
+
+    Parameters
+    ----------
+    model : loaded model of the measured position (e.g. prone gravity and supports)
+    target : maps the (k, 3) simulated positions of the active nodes to their measured
+        counterparts, mm: the closest points on the measured skin surface (e.g. an open3d
+        ray-casting scene), or the measured node positions where correspondence is known
+    active : (k,) indices of the active (skin) nodes
+    anchored : (j,) indices of nodes that do not move in the mesh-motion step (fixed chest wall)
+    X0 : initial estimate (default the mesh nodes, i.e. the reference-position geometry)
+    lam : fraction of the correction imposed per iteration (paper: lambda < 1)
+    min_improvement : stop when the mean error improves by less than this, mm (paper: 1 mm)
+    """
+    if not 0.0 < lam <= 1.0:
+        raise ValueError(f"stress-free: lam must be in (0, 1], got {lam}")
+    active = np.asarray(active, np.int64)
+    anchored = np.setdiff1d(np.asarray(anchored, np.int64), active)
+    X = np.array(model.mesh.nodes if X0 is None else X0, np.float64)
+    # A compressible linear-elastic solid carries the imposed surface correction smoothly
+    # into the interior (the paper's "imposed displacement" step), independent of gravity.
+    mover = {int(r): {"name": "linear", "E": 1.0, "nu": 0.3} for r in np.unique(model.mesh.region)}
+    history: list[dict] = []
+    t0 = time.perf_counter()
+    best = (np.inf, X, None)
+    u = None
+    for it in range(1, max_iter + 1):
+        state = _forward(model, X, u, options)
+        u = state.u
+        x_act = state.x[active]
+        D = target(x_act) - x_act
+        err = np.linalg.norm(D, axis=1)
+        row = {"iteration": it, "mean_error": float(err.mean()), "max_error": float(err.max()),
+               "newton": state.newton_iterations, "time": time.perf_counter() - t0}
+        history.append(row)
+        if callback:
+            callback(row)
+        improved = best[0] - row["mean_error"]
+        if row["mean_error"] < best[0]:
+            best = (row["mean_error"], X, state)
+        if improved < min_improvement:
+            break
+        X = _move(model, mover, X, active, lam * D, anchored)
+    _, X_best, s_best = best
+    converged = len(history) < max_iter
+    return StressFreeResult(X_best, s_best, tuple(history), converged, "paper_fixed_point")
+
+
+def _move(model: Model, materials: dict, X: np.ndarray, active: np.ndarray, d: np.ndarray,
+          anchored: np.ndarray) -> np.ndarray:
+    effects = {"fixed:active": {"nodes": active, "values": d},
+               "fixed:anchored": {"nodes": anchored}}
+    m = build_model(model.mesh, materials, effects, formulation="standard")
+    return solve(m, X=X, options=SolverOptions(linear_solver="scipy")).x
