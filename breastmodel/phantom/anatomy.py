@@ -1,0 +1,453 @@
+"""Parametric torso-and-breasts anatomy for synthetic MRI subjects (phantoms).
+
+All coordinates are in the *patient frame*: LPS millimetres, x toward the patient's left,
+y posterior, z superior, origin on the torso axis. The torso is an elliptic cylinder along z
+made of nested layers (skin, subcutaneous fat, muscle, thorax interior); each breast is a
+superellipsoid centred on the chest surface (its anterior part protrudes, the rest lies inside
+the torso where the layers take priority), with an inner glandular superellipsoid and a nipple.
+Skin markers are small spheres just outside the skin on stiff zones (sternum, inframammary
+folds), as in the paper.
+
+The anatomy is a small constructive description made of primitives that can both test point
+membership (for voxelisation) and give exact chord intervals along y (for reference volumes
+that do not depend on any voxel grid), see :func:`reference_volumes`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+__all__ = [
+    "AIR", "FAT", "MUSCLE", "GLAND", "SKIN", "MARKER", "THORAX", "TISSUE_NAMES",
+    "Breast", "Anatomy", "EllipticCylinderZ", "Superellipsoid",
+    "reference_volumes", "segmentation_codes",
+]
+
+#: Fine tissue codes of the truth label volumes.
+AIR, FAT, MUSCLE, GLAND, SKIN, MARKER, THORAX = range(7)
+TISSUE_NAMES = ("air", "fat", "muscle", "gland", "skin", "marker", "thorax")
+
+
+@dataclass(frozen=True)
+class EllipticCylinderZ:
+    """Infinite elliptic cylinder along z: ((x-cx)/a)^2 + ((y-cy)/b)^2 <= 1 (mm)."""
+
+    center: tuple[float, float]
+    radii: tuple[float, float]
+
+    def contains(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Membership of points given by coordinate arrays (mm)."""
+        u = (x - float(self.center[0])) * (1.0 / self.radii[0])
+        v = (y - float(self.center[1])) * (1.0 / self.radii[1])
+        u *= u
+        v *= v
+        u += v
+        return u <= 1.0
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return (-np.inf, np.inf)
+
+    def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty."""
+        u = (x - self.center[0]) / self.radii[0]
+        r = 1.0 - u * u
+        h = np.where(r >= 0, self.radii[1] * np.sqrt(np.clip(r, 0, None)), np.nan)
+        return self.center[1] - h, self.center[1] + h
+
+    @property
+    def volume_per_mm(self) -> float:
+        """Cross-section area, mm^2 (volume per mm of length)."""
+        return float(np.pi * self.radii[0] * self.radii[1])
+
+
+@dataclass(frozen=True)
+class Superellipsoid:
+    """|u|^e + |v|^e + |w|^e <= 1 with u = (x - cx)/rx etc. (mm); e = 2 is an ellipsoid."""
+
+    center: tuple[float, float, float]
+    radii: tuple[float, float, float]
+    exponent: float = 2.0
+
+    def _power(self, t: np.ndarray) -> np.ndarray:
+        if self.exponent == 2.0:
+            return t * t
+        t = np.abs(t)
+        return t ** t.dtype.type(self.exponent) if isinstance(t, np.ndarray) else t**self.exponent
+
+    def contains(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Membership of points given by coordinate arrays (mm)."""
+        c, r = [float(v) for v in self.center], [float(v) for v in self.radii]
+        s = self._power((x - c[0]) * (1.0 / r[0]))
+        s += self._power((y - c[1]) * (1.0 / r[1]))
+        s += self._power((z - c[2]) * (1.0 / r[2]))
+        return s <= 1.0
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return (self.center[2] - self.radii[2], self.center[2] + self.radii[2])
+
+    def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty."""
+        c, r = self.center, self.radii
+        rest = 1.0 - self._power((x - c[0]) / r[0]) - self._power((z - c[2]) / r[2])
+        h = np.where(rest >= 0, r[1] * np.clip(rest, 0, None) ** (1.0 / self.exponent), np.nan)
+        return c[1] - h, c[1] + h
+
+    @property
+    def volume(self) -> float:
+        """Closed-form volume, mm^3: 8 rx ry rz Gamma(1+1/e)^3 / Gamma(1+3/e)."""
+        from math import gamma
+
+        e = self.exponent
+        return float(8 * np.prod(self.radii) * gamma(1 + 1 / e) ** 3 / gamma(1 + 3 / e))
+
+
+@dataclass(frozen=True)
+class Breast:
+    """One breast: a superellipsoid protrusion centred on the chest surface (mm).
+
+    Attributes
+    ----------
+    center_x, center_z
+        Position of the breast centre on the chest surface (x > 0 is the patient's left).
+    radius_x, radius_z
+        Half-width (L-R) and half-height (S-I) of the base, mm.
+    projection
+        How far the breast projects anterior of the chest surface at its centre, mm.
+    exponent
+        Superellipsoid exponent (2: ellipsoid; larger: fuller, boxier shape).
+    gland_scale
+        Gland semi-axes as fractions of the breast semi-axes (x, y, z).
+    gland_offset
+        Gland centre anterior shift from the breast centre, as a fraction of ``projection``.
+    nipple_radius
+        Radius of the spherical nipple centred on the breast tip, mm.
+    """
+
+    center_x: float
+    center_z: float
+    radius_x: float
+    radius_z: float
+    projection: float
+    exponent: float = 2.0
+    gland_scale: tuple[float, float, float] = (0.55, 0.45, 0.55)
+    gland_offset: float = 0.35
+    nipple_radius: float = 4.0
+
+
+@dataclass(frozen=True)
+class Anatomy:
+    """Parameters of the phantom torso (mm). Defaults: an adult breast-MRI field of view.
+
+    Attributes
+    ----------
+    torso_half_width, torso_half_depth
+        Semi-axes (x, y) of the outer skin ellipse of the torso, centred on the patient-frame
+        origin; the anterior chest surface is at y = -torso_half_depth.
+    skin, subcutaneous_fat, muscle
+        Layer thicknesses along the ellipse axes, mm (layers are concentric ellipses).
+    left, right
+        The two breasts (left at x > 0).
+    marker_radius, marker_gap
+        Skin marker sphere radius and its gap to the skin surface, mm.
+    sternum_z
+        z of the upper and lower sternal markers, mm.
+    imf_gap
+        Distance below each breast's lower edge of its inframammary-fold marker, mm.
+    fov_min, fov_max
+        Field-of-view box (patient frame = image frame before motion), mm.
+    rotation_center
+        Centre of the random rigid rotations, mm (the middle of the breast region keeps
+        motions from pushing the breasts out of the field of view).
+    """
+
+    torso_half_width: float = 150.0
+    torso_half_depth: float = 110.0
+    skin: float = 2.0
+    subcutaneous_fat: float = 8.0
+    muscle: float = 12.0
+    left: Breast = field(
+        default_factory=lambda: Breast(
+            center_x=78.0, center_z=-10.0, radius_x=66.0, radius_z=60.0, projection=55.0
+        )
+    )
+    right: Breast = field(
+        default_factory=lambda: Breast(
+            center_x=-78.0, center_z=-8.0, radius_x=62.0, radius_z=57.0, projection=48.0,
+            exponent=2.4, gland_scale=(0.5, 0.4, 0.5),
+        )
+    )
+    marker_radius: float = 2.0
+    marker_gap: float = 0.5
+    sternum_z: tuple[float, float] = (60.0, -40.0)
+    imf_gap: float = 8.0
+    fov_min: tuple[float, float, float] = (-160.0, -185.0, -100.0)
+    fov_max: tuple[float, float, float] = (160.0, -5.0, 100.0)
+    rotation_center: tuple[float, float, float] = (0.0, -100.0, -10.0)
+
+    @classmethod
+    def small(cls) -> Anatomy:
+        """A half-size torso in a 170 x 90 x 100 mm field of view (for fast tests and demos)."""
+        return cls(
+            torso_half_width=75.0,
+            torso_half_depth=55.0,
+            skin=2.0,
+            subcutaneous_fat=5.0,
+            muscle=8.0,
+            left=Breast(
+                center_x=38.0, center_z=0.0, radius_x=28.0, radius_z=26.0, projection=28.0,
+                nipple_radius=3.0,
+            ),
+            right=Breast(
+                center_x=-38.0, center_z=1.0, radius_x=25.0, radius_z=24.0, projection=24.0,
+                exponent=2.4, gland_scale=(0.5, 0.4, 0.5), nipple_radius=3.0,
+            ),
+            sternum_z=(32.0, -20.0),
+            imf_gap=6.0,
+            fov_min=(-85.0, -100.0, -50.0),
+            fov_max=(85.0, -10.0, 50.0),
+            rotation_center=(0.0, -55.0, 0.0),
+        )
+
+    def with_fov(self, fov_min, fov_max) -> Anatomy:
+        """Copy with another field of view (e.g. a crop around one breast)."""
+        return replace(self, fov_min=tuple(map(float, fov_min)), fov_max=tuple(map(float, fov_max)))
+
+    # --- derived geometry -------------------------------------------------------------------
+
+    def torso_layer(self, depth: float) -> EllipticCylinderZ:
+        """Torso ellipse shrunk by ``depth`` mm along both axes."""
+        return EllipticCylinderZ(
+            (0.0, 0.0), (self.torso_half_width - depth, self.torso_half_depth - depth)
+        )
+
+    def chest_surface_y(self, x: float) -> float:
+        """y of the outer (skin) torso surface at lateral position x, mm (anterior side)."""
+        a, b = self.torso_half_width, self.torso_half_depth
+        return float(-b * np.sqrt(max(0.0, 1.0 - (x / a) ** 2)))
+
+    def breast_shape(self, breast: Breast, *, shrink: float = 0.0) -> Superellipsoid:
+        """The breast superellipsoid, optionally shrunk by ``shrink`` mm (skin inner side)."""
+        cy = self.chest_surface_y(breast.center_x)
+        return Superellipsoid(
+            (breast.center_x, cy, breast.center_z),
+            (breast.radius_x - shrink, breast.projection - shrink, breast.radius_z - shrink),
+            breast.exponent,
+        )
+
+    def gland_shape(self, breast: Breast) -> Superellipsoid:
+        cy = self.chest_surface_y(breast.center_x) - breast.gland_offset * breast.projection
+        sx, sy, sz = breast.gland_scale
+        return Superellipsoid(
+            (breast.center_x, cy, breast.center_z),
+            (sx * breast.radius_x, sy * breast.projection, sz * breast.radius_z),
+            breast.exponent,
+        )
+
+    def nipple_tip(self, breast: Breast) -> np.ndarray:
+        """Most anterior point of the breast superellipsoid (nipple centre), mm."""
+        cy = self.chest_surface_y(breast.center_x)
+        return np.array([breast.center_x, cy - breast.projection, breast.center_z])
+
+    def nipple_shape(self, breast: Breast) -> Superellipsoid:
+        r = breast.nipple_radius
+        return Superellipsoid(tuple(self.nipple_tip(breast)), (r, r, r))
+
+    def markers(self) -> dict[str, np.ndarray]:
+        """Skin-marker centres (patient frame, mm), on the outward normal of the torso skin."""
+        out = {}
+        a, b = self.torso_half_width, self.torso_half_depth
+        d = self.marker_radius + self.marker_gap
+
+        def on_skin(x: float, z: float) -> np.ndarray:
+            y = self.chest_surface_y(x)
+            n = np.array([x / a**2, y / b**2, 0.0])
+            return np.array([x, y, z]) + d * n / np.linalg.norm(n)
+
+        out["sternum_upper"] = on_skin(0.0, self.sternum_z[0])
+        out["sternum_lower"] = on_skin(0.0, self.sternum_z[1])
+        for side, br in (("left", self.left), ("right", self.right)):
+            out[f"imf_{side}"] = on_skin(br.center_x, br.center_z - br.radius_z - self.imf_gap)
+        return out
+
+    def landmarks(self) -> dict[str, np.ndarray]:
+        """Internal/anatomical landmarks (patient frame, mm): nipple tips and gland centres."""
+        out = {}
+        for side, br in (("left", self.left), ("right", self.right)):
+            out[f"nipple_{side}"] = self.nipple_tip(br)
+            out[f"gland_center_{side}"] = np.asarray(self.gland_shape(br).center, dtype=float)
+        return out
+
+    def primitives(self) -> dict[str, EllipticCylinderZ | Superellipsoid]:
+        """Every primitive of the constructive description, by name."""
+        s, f, m = self.skin, self.subcutaneous_fat, self.muscle
+        prims: dict[str, EllipticCylinderZ | Superellipsoid] = {
+            "torso_outer": self.torso_layer(0.0),
+            "torso_inner": self.torso_layer(s),
+            "muscle_outer": self.torso_layer(s + f),
+            "muscle_inner": self.torso_layer(s + f + m),
+        }
+        for side, br in (("left", self.left), ("right", self.right)):
+            prims[f"breast_{side}_outer"] = self.breast_shape(br)
+            prims[f"breast_{side}_inner"] = self.breast_shape(br, shrink=s)
+            prims[f"gland_{side}"] = self.gland_shape(br)
+            prims[f"nipple_{side}"] = self.nipple_shape(br)
+        r = self.marker_radius
+        for name, c in self.markers().items():
+            prims[f"marker_{name}"] = Superellipsoid(tuple(c), (r, r, r))
+        return prims
+
+    # --- classification ---------------------------------------------------------------------
+
+    def classify(self, points: np.ndarray) -> np.ndarray:
+        """Fine tissue code of each point.
+
+        Parameters
+        ----------
+        points : (n, 3) float
+            Patient-frame points, mm.
+
+        Returns
+        -------
+        (n,) uint8
+            Codes AIR 0, FAT 1, MUSCLE 2, GLAND 3, SKIN 4, MARKER 5, THORAX 6.
+        """
+        p = np.asarray(points)
+        x, y, z = (np.ascontiguousarray(p[:, i]) for i in range(3))
+        return self.classify_xyz(x, y, z)
+
+    def classify_xyz(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Like :meth:`classify` for coordinate arrays x, y, z (n,) mm (float32 is fine)."""
+        n = len(x)
+        if n == 0:
+            return np.zeros(0, dtype=np.uint8)
+        inside = {}
+        prims = self.primitives()
+        zlo, zhi = float(z.min()), float(z.max())
+        for names in self._groups(prims):
+            shapes = [prims[k] for k in names]
+            if not isinstance(shapes[0], Superellipsoid):
+                for k, pr in zip(names, shapes):
+                    inside[k] = pr.contains(x, y, z)
+                continue
+            # Local shapes: test only the points inside the group's bounding box.
+            lo = np.min([sh.center for sh in shapes] - np.array([sh.radii for sh in shapes]), 0)
+            hi = np.max([sh.center for sh in shapes] + np.array([sh.radii for sh in shapes]), 0)
+            if hi[2] < zlo or lo[2] > zhi:
+                continue
+            sel = (x >= lo[0]) & (x <= hi[0])
+            sel &= (y >= lo[1]) & (y <= hi[1])
+            sel &= (z >= lo[2]) & (z <= hi[2])
+            idx = np.flatnonzero(sel)
+            if len(idx) == 0:
+                continue
+            xs, ys, zs = x[idx], y[idx], z[idx]
+            for k, sh in zip(names, shapes):
+                inside[k] = np.zeros(n, dtype=bool)
+                inside[k][idx] = sh.contains(xs, ys, zs)
+        none = np.zeros(n, dtype=bool)
+
+        def any_of(*names: str) -> np.ndarray:
+            out = none.copy()
+            for k in names:
+                if k in inside:
+                    out |= inside[k]
+            return out
+
+        outer = any_of(
+            "torso_outer", "breast_left_outer", "breast_right_outer", "nipple_left", "nipple_right"
+        )
+        inner = any_of("torso_inner", "breast_left_inner", "breast_right_inner")
+        code = np.full(n, FAT, dtype=np.uint8)
+        # Later assignments win: gland < muscle < thorax < skin < air < marker.
+        code[any_of("gland_left", "gland_right")] = GLAND
+        code[inside["muscle_outer"]] = MUSCLE
+        code[inside["muscle_inner"]] = THORAX
+        code[~inner] = SKIN
+        code[~outer] = AIR
+        code[any_of(*(k for k in inside if k.startswith("marker_")))] = MARKER
+        return code
+
+    @staticmethod
+    def _groups(prims: dict) -> list[list[str]]:
+        """Primitives tested together: each torso layer alone, each breast with its inner
+        surface, gland and nipple (one bounding box), each marker alone."""
+        groups = [[k] for k in prims if k.startswith(("torso_", "muscle_", "marker_"))]
+        for side in ("left", "right"):
+            groups.append(
+                [k for k in prims if not k.startswith("marker_") and side in k.split("_")]
+            )
+        return groups
+
+    def is_anterior(self, points: np.ndarray) -> np.ndarray:
+        """True for points anterior of the coronal plane through the torso axis (y < 0)."""
+        return np.asarray(points)[:, 1] < 0.0
+
+
+def segmentation_codes(fine: np.ndarray, anterior: np.ndarray) -> np.ndarray:
+    """Map fine codes to the segmentation convention.
+
+    0 background (air, thorax interior, markers, and tissue posterior of the torso axis),
+    1 breast tissue (fat, gland and skin anterior of the torso axis), 2 muscle, 3 gland.
+    """
+    lut = np.array([0, 1, 2, 3, 1, 0, 0], dtype=np.uint8)
+    seg = lut[fine]
+    seg[(~anterior) & ((fine == FAT) | (fine == SKIN) | (fine == GLAND))] = 0
+    return seg
+
+
+def reference_volumes(
+    anatomy: Anatomy, *, step: float = 0.2, box_min=None, box_max=None
+) -> dict[str, float]:
+    """Tissue volumes of the anatomy inside a box, independent of any voxel grid (mm^3).
+
+    Along each line parallel to y the membership of every primitive changes only at its chord
+    end points, which are exact (closed form); between consecutive end points the tissue is
+    constant, so each line's tissue lengths are exact. The lines sit on a midpoint grid of
+    spacing ``step`` in (x, z), whose error is second order in ``step`` on smooth parts.
+
+    Parameters
+    ----------
+    anatomy
+        The anatomy (patient frame, no motion).
+    step
+        Line spacing in x and z, mm.
+    box_min, box_max
+        Integration box, mm (default: the anatomy's field of view).
+
+    Returns
+    -------
+    dict
+        Volume per tissue name (``TISSUE_NAMES``), mm^3.
+    """
+    lo_box = np.asarray(anatomy.fov_min if box_min is None else box_min, dtype=float)
+    hi_box = np.asarray(anatomy.fov_max if box_max is None else box_max, dtype=float)
+    nx = max(1, int(round((hi_box[0] - lo_box[0]) / step)))
+    nz = max(1, int(round((hi_box[2] - lo_box[2]) / step)))
+    hx, hz = (hi_box[0] - lo_box[0]) / nx, (hi_box[2] - lo_box[2]) / nz
+    xs = lo_box[0] + hx * (np.arange(nx) + 0.5)
+    zs = lo_box[2] + hz * (np.arange(nz) + 0.5)
+    prims = list(anatomy.primitives().values())
+    totals = np.zeros(len(TISSUE_NAMES))
+    for z in zs:  # one row of lines at a time keeps memory small
+        x = xs
+        zz = np.full_like(x, z)
+        ends = [np.full_like(x, lo_box[1]), np.full_like(x, hi_box[1])]
+        for pr in prims:
+            a, b = pr.chord_y(x, zz)
+            ends += [a, b]
+        e = np.stack(ends, axis=1)
+        e = np.where(np.isnan(e), lo_box[1], e)
+        e = np.sort(np.clip(e, lo_box[1], hi_box[1]), axis=1)
+        mid = 0.5 * (e[:, 1:] + e[:, :-1])
+        length = e[:, 1:] - e[:, :-1]
+        pts = np.stack(
+            [np.repeat(x, mid.shape[1]), mid.ravel(), np.full(mid.size, z)], axis=1
+        )
+        codes = anatomy.classify(pts)
+        totals += np.bincount(codes, weights=length.ravel(), minlength=len(TISSUE_NAMES))
+    totals *= hx * hz
+    return {name: float(v) for name, v in zip(TISSUE_NAMES, totals)}

@@ -1,0 +1,254 @@
+"""Make a synthetic subject folder (the pipeline's input) and its truth folder.
+
+Per position: draw a rigid motion, map the scanner grid back into the patient frame (inverse
+motion, then the inverse of the position's deformation), voxelise the anatomy there, render
+the MRI-like image, and write everything. The deformation is the identity today; when the
+mechanics solver exists, :func:`displacement` returns the simulated field and nothing else
+changes.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import logging
+import zlib
+from collections.abc import Callable, Sequence
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import SimpleITK as sitk
+import tomli_w
+
+from breastmodel.config import write_atomic, write_json
+from breastmodel.phantom.anatomy import TISSUE_NAMES, Anatomy
+from breastmodel.phantom.motion import patient_gravity, random_motion
+from breastmodel.phantom.rendering import T2_INTENSITY, render
+from breastmodel.phantom.voxelize import Grid, voxelize
+from imaging.io import write_volume
+
+__all__ = ["make_phantom", "displacement", "truth_folder", "INTENSITY_SCALE"]
+
+log = logging.getLogger("breastmodel.phantom")
+
+#: Stored voxel value = relative intensity x this (int16 volumes; fat ~ 1000).
+INTENSITY_SCALE = 1000.0
+
+
+def truth_folder(out: str | Path) -> Path:
+    """The truth folder that goes with subject folder ``out``: ``<out>_truth``."""
+    out = Path(out)
+    return out.with_name(out.name + "_truth")
+
+
+def displacement(
+    position: str, anatomy: Anatomy | None = None
+) -> Callable[[np.ndarray], np.ndarray]:
+    """Deformation of the anatomy in ``position``, sampled at deformed (current) points.
+
+    Returns a callable taking current patient-frame points x (n, 3) mm and returning u (n, 3)
+    mm such that the material point is X = x - u(x). The identity (u = 0) for now; a simulated
+    gravity deformation plugs in here.
+    """
+    del position, anatomy
+    return _no_displacement
+
+
+def _no_displacement(points: np.ndarray) -> np.ndarray:
+    return np.zeros_like(points, dtype=float)
+
+
+def _deformed(material: np.ndarray, u: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """Current position x of material point X (3,) mm: solve x = X + u(x) by fixed point."""
+    X = np.asarray(material, dtype=float)[None]
+    if u is _no_displacement:
+        return X
+    x = X.copy()
+    for _ in range(100):
+        x_new = X + u(x)
+        if np.max(np.abs(x_new - x)) < 1e-8:
+            return x_new
+        x = x_new
+    raise RuntimeError("phantom: deformation is not invertible near a marker or landmark")
+
+
+def _stream(seed: int, position: str, purpose: int) -> np.random.Generator:
+    # Independent of the order and set of positions: keyed by the position's name.
+    return np.random.default_rng([int(seed), zlib.crc32(position.encode()), purpose])
+
+
+def _image(array: np.ndarray, grid: Grid) -> sitk.Image:
+    img = sitk.GetImageFromArray(array)
+    img.SetSpacing((grid.spacing,) * 3)
+    img.SetOrigin(grid.origin)
+    img.SetDirection((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
+    return img
+
+
+def _csv(rows: list[tuple]) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["position", "label", "x", "y", "z"])
+    for pos, label, p in rows:
+        w.writerow([pos, label, *(f"{v:.3f}" for v in p)])
+    return buf.getvalue()
+
+
+def make_phantom(
+    out: str | Path,
+    *,
+    seed: int = 0,
+    voxel_size: float = 1.0,
+    snr: float = 20.0,
+    bias: float = 0.3,
+    positions: Sequence[str] = ("prone", "supine", "supine_tilted"),
+    max_rotation_deg: float = 5.0,
+    max_translation_mm: float = 10.0,
+    small: bool = False,
+    anatomy: Anatomy | None = None,
+    progress: bool = True,
+    deformation: Callable[[str], Callable[[np.ndarray], np.ndarray]] | None = None,
+) -> Path:
+    """Write a synthetic subject folder and its truth folder ``<out>_truth``.
+
+    Parameters
+    ----------
+    out
+        Subject folder to create (existing files of the same names are replaced).
+    seed
+        Seed of every random choice; the same seed gives byte-identical volumes.
+    voxel_size
+        Isotropic voxel size, mm.
+    snr
+        Mean fat signal / Rician noise sigma.
+    bias
+        Bias-field amplitude (relative, 0.3 = +-30 %).
+    positions
+        Position names (see :func:`breastmodel.phantom.motion.patient_gravity`).
+    max_rotation_deg, max_translation_mm
+        Bounds of the random rigid motion of each position (degrees, mm).
+    small
+        Use :meth:`Anatomy.small` (half-size torso, small field of view) when ``anatomy`` is
+        None.
+    anatomy
+        Explicit anatomy parameters (default :class:`Anatomy`).
+    progress
+        Show a tqdm progress bar.
+    deformation
+        Optional ``deformation(position) -> u`` replacing :func:`displacement` (same contract:
+        u maps deformed patient-frame points (n, 3) mm to displacements (n, 3) mm). Markers
+        and landmarks are then moved by the forward map x = X + u(x).
+
+    Returns
+    -------
+    Path
+        The subject folder. Volumes are int16 NIfTI with fat ~ ``INTENSITY_SCALE``.
+    """
+    from tqdm import tqdm
+
+    positions = list(positions)
+    if not positions:
+        raise ValueError("phantom: at least one position is needed")
+    if len(set(positions)) != len(positions):
+        raise ValueError(f"phantom: duplicate position names in {positions}")
+    if int(seed) != seed or seed < 0:
+        raise ValueError(f"phantom: seed must be a non-negative integer, got {seed}")
+    if voxel_size <= 0:
+        raise ValueError(f"phantom: voxel size must be > 0 mm, got {voxel_size}")
+    if max_rotation_deg < 0 or max_translation_mm < 0:
+        raise ValueError("phantom: motion bounds must be >= 0")
+    anatomy = anatomy if anatomy is not None else (Anatomy.small() if small else Anatomy())
+    gravities = {p: patient_gravity(p) for p in positions}  # fails early on unknown names
+    out = Path(out)
+    truth = truth_folder(out)
+    out.mkdir(parents=True, exist_ok=True)
+    truth.mkdir(parents=True, exist_ok=True)
+    grid = Grid.from_box(anatomy.fov_min, anatomy.fov_max, voxel_size)
+    reference = "supine" if "supine" in positions else positions[0]
+
+    toml: dict = {"subject": f"phantom-{seed:04d}", "reference": reference, "positions": {}}
+    fid_rows, lm_rows = [], []
+    truth_pos: dict = {}
+    bar = tqdm(total=100 * len(positions), desc="phantom", unit="%", disable=not progress)
+    for name in positions:
+        motion = random_motion(
+            _stream(seed, name, 0),
+            max_rotation_deg=max_rotation_deg,
+            max_translation_mm=max_translation_mm,
+            center=anatomy.rotation_center,
+        )
+        done = [0]
+
+        def tick(frac: float, done=done) -> None:
+            bar.update(round(100 * frac) - done[0])
+            done[0] = round(100 * frac)
+
+        u = deformation(name) if deformation is not None else displacement(name, anatomy)
+        tissue = voxelize(
+            anatomy,
+            grid,
+            image_to_patient=np.linalg.inv(motion.matrix()),
+            displacement=None if u is _no_displacement else u,
+            progress=tick,
+        )
+        rendered = render(tissue, _stream(seed, name, 1), snr=snr, bias=bias)
+        stored = np.clip(np.rint(rendered.image * INTENSITY_SCALE), 0, 32767).astype(np.int16)
+        write_volume(_image(stored, grid), out / f"{name}.nii.gz")
+        write_volume(_image(tissue.fine, grid), truth / f"{name}_tissue.nii.gz")
+        write_volume(_image(tissue.seg, grid), truth / f"{name}_labels.nii.gz")
+        sitk.WriteTransform(motion.to_sitk(), str(truth / f"{name}_motion.tfm"))
+
+        g_patient, tilt = gravities[name]
+        g_image = motion.apply_vector(g_patient)
+        entry = {"volume": f"{name}.nii.gz", "gravity": [round(float(v), 12) for v in g_image]}
+        entry["notes"] = f"synthetic {name} scan, rigidly moved"
+        if tilt is not None:
+            entry["tilt_deg"] = tilt
+        toml["positions"][name] = entry
+
+        markers = {k: motion.apply(_deformed(v, u))[0] for k, v in anatomy.markers().items()}
+        landmarks = {k: motion.apply(_deformed(v, u))[0] for k, v in anatomy.landmarks().items()}
+        fid_rows += [(name, k, p) for k, p in markers.items()]
+        lm_rows += [(name, k, p) for k, p in landmarks.items()]
+        volumes = np.bincount(tissue.fine.ravel(), minlength=len(TISSUE_NAMES))
+        truth_pos[name] = {
+            "motion": motion.as_dict(),
+            "gravity_patient": g_patient.tolist(),
+            "gravity_image": g_image.tolist(),
+            "tilt_deg": tilt,
+            "markers_mm": {k: v.tolist() for k, v in markers.items()},
+            "landmarks_mm": {k: v.tolist() for k, v in landmarks.items()},
+            "noise_sigma": rendered.noise_sigma * INTENSITY_SCALE,
+            "mean_fat_signal": rendered.mean_fat * INTENSITY_SCALE,
+            "tissue_volumes_mm3": {
+                n: float(c) * voxel_size**3 for n, c in zip(TISSUE_NAMES, volumes)
+            },
+        }
+    bar.close()
+
+    write_atomic(out / "subject.toml", tomli_w.dumps(toml))
+    write_atomic(out / "fiducials.csv", _csv(fid_rows))
+    write_atomic(out / "landmarks.csv", _csv(lm_rows))
+    write_json(
+        truth / "truth.json",
+        {
+            "subject": toml["subject"],
+            "seed": seed,
+            "snr": snr,
+            "bias_amplitude": bias,
+            "voxel_size_mm": voxel_size,
+            "intensity_scale": INTENSITY_SCALE,
+            "t2_intensity": {TISSUE_NAMES[k]: v for k, v in T2_INTENSITY.items()},
+            "tissue_codes": {n: i for i, n in enumerate(TISSUE_NAMES)},
+            "label_codes": {"background": 0, "breast": 1, "muscle": 2, "gland": 3},
+            "reference": reference,
+            "anatomy": asdict(anatomy),
+            "markers_patient_mm": {k: v.tolist() for k, v in anatomy.markers().items()},
+            "landmarks_patient_mm": {k: v.tolist() for k, v in anatomy.landmarks().items()},
+            "patient_frame": "LPS mm, origin on the torso axis; image = motion(patient)",
+            "positions": truth_pos,
+        },
+    )
+    log.info("phantom: wrote %s and %s", out, truth)
+    return out
