@@ -1,0 +1,207 @@
+"""Benchmark: a hemisphere (radius 60 mm, flat face fixed) hanging under gravity.
+
+E = 1 kPa, nu = 0.49, rho = 1000 kg/m^3, g = 9.81 m/s^2, Neo-Hookean, relative residual 1e-8.
+Meshes: the structured hemisphere of ``tests/zoo.py`` at ~20k tets (n = 19) and ~150k
+(n = 37). Each solver runs in its own subprocess so that its peak memory (VmHWM) is its own.
+Reported: wall time (cold: pattern + symbolic analysis included; warm: a second solve of the
+same model, as in a fit), Newton iterations, time split, peak memory, max displacement, and
+SfePy (P1 total-Lagrangian Neo-Hookean + bulk penalty, ScipyDirect) on the same mesh.
+
+Usage: ``python bench/gravity.py [--sizes 20k,150k] [--no-sfepy] [--E 1.0]``; writes
+``bench/results/gravity.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+
+SIZES = {"2k": 8, "20k": 19, "150k": 37}
+RHO, G, RADIUS = 1000.0, 9.81, 60.0
+
+
+def peak_rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def hemisphere_mesh(n: int):
+    from zoo import hemisphere
+
+    return hemisphere(RADIUS, n)
+
+
+def run_ours(n: int, E: float, nu: float, formulation: str, linear_solver: str) -> dict:
+    from mechanics.model import build_model
+    from mechanics.solver import SolverOptions, solve
+
+    mesh = hemisphere_mesh(n)
+    model = build_model(mesh, {1: {"name": "neo_hookean", "E": E, "nu": nu}},
+                        {"gravity": {"direction": (0, 0, -1), "density": RHO, "g": G},
+                         "fixed": {"node_set": "fixed"}}, formulation=formulation)
+    opt = SolverOptions(tol=1e-8, linear_solver=linear_solver)
+    t0 = time.perf_counter()
+    cold = solve(model, options=opt)
+    t_cold = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    warm = solve(model, options=opt)
+    t_warm = time.perf_counter() - t0
+    split = {k: float(sum(e[f"t_{k}"] for e in warm.log)) for k in ("assembly", "factor",
+                                                                     "solve")}
+    return {
+        "solver": f"ours ({formulation}, {linear_solver})", "n_tets": mesh.n_tets,
+        "n_nodes": mesh.n_nodes, "wall_cold_s": t_cold, "wall_s": t_warm,
+        "newton": warm.newton_iterations, "load_steps": warm.load_steps,
+        "final_residual": float(warm.log[-1]["residuals"][-1]),
+        "split_s": split, "max_disp_mm": warm.max_displacement(),
+        "converged": warm.converged, "peak_mb": peak_rss_mb(),
+        "agree_cold_warm": float(np.abs(cold.u - warm.u).max()),
+    }
+
+
+def solve_sfepy(mesh, *, E: float, nu: float, rho_g: float, direction=(0.0, 0.0, -1.0),
+                fixed: str = "fixed", mixed: bool = False):
+    """SfePy total-Lagrangian Neo-Hookean on the same mesh, an independent code.
+
+    ``mixed=False``: P1 displacement, dw_tl_he_neohook + dw_tl_bulk_penalty (the same
+    discrete energy as our ``formulation="standard"``). ``mixed=True``: P1 displacement and
+    P1 pressure (dw_tl_bulk_pressure, dw_tl_volume, dw_dot(1/K)), a locking-free mixed
+    formulation to compare with our averaged nodal pressure.
+    Returns (u (N, 3) mm, wall s, Newton iterations)."""
+    from sfepy.base.base import IndexedStruct, output
+    from sfepy.discrete import Equation, Equations, FieldVariable, Integral, Material, Problem
+    from sfepy.discrete.conditions import Conditions, EssentialBC
+    from sfepy.discrete.fem import FEDomain, Field
+    from sfepy.discrete.fem import Mesh as SfMesh
+    from sfepy.solvers.ls import ScipyDirect
+    from sfepy.solvers.nls import Newton
+    from sfepy.terms import Term
+
+    output.set_output(quiet=True)
+    t0 = time.perf_counter()
+    sm = SfMesh.from_data("m", mesh.nodes, None, [mesh.tets.astype(np.int32)],
+                          [np.ones(mesh.n_tets, np.int32)], ["3_4"])
+    domain = FEDomain("d", sm)
+    omega = domain.create_region("Omega", "all")
+    ids = mesh.node_sets[fixed]
+    fixed_r = domain.create_region("Fixed", "vertex " + ", ".join(map(str, ids)), "vertex")
+    field = Field.from_args("fu", np.float64, "vector", omega, approx_order=1)
+    u = FieldVariable("u", "unknown", field)
+    v = FieldVariable("v", "test", field, primary_var_name="u")
+    K = E / (3 * (1 - 2 * nu))
+    m = Material("m", mu=E / (2 * (1 + nu)), K=K, iK=1.0 / K)
+    f = Material("f", val=(rho_g * np.asarray(direction, float)).reshape(3, 1))
+    integral = Integral("i", order=2)
+    t1 = Term.new("dw_tl_he_neohook(m.mu, v, u)", integral, omega, m=m, v=v, u=u)
+    t3 = Term.new("dw_volume_lvf(f.val, v)", integral, omega, f=f, v=v)
+    if mixed:
+        fp = Field.from_args("fp", np.float64, "scalar", omega, approx_order=1)
+        p = FieldVariable("p", "unknown", fp)
+        q = FieldVariable("q", "test", fp, primary_var_name="p")
+        t2 = Term.new("dw_tl_bulk_pressure(v, u, p)", integral, omega, v=v, u=u, p=p)
+        vol = (Term.new("dw_tl_volume(q, u)", integral, omega, q=q, u=u, term_mode="volume")
+               - Term.new("dw_integrate(q)", integral, omega, q=q)
+               + Term.new("dw_dot(m.iK, q, p)", integral, omega, m=m, q=q, p=p))
+        eqs = [Equation("balance", t1 + t2 - t3), Equation("volume", vol)]
+    else:
+        t2 = Term.new("dw_tl_bulk_penalty(m.K, v, u)", integral, omega, m=m, v=v, u=u)
+        eqs = [Equation("balance", t1 + t2 - t3)]
+    pb = Problem("hemisphere", equations=Equations(eqs))
+    pb.set_bcs(ebcs=Conditions([EssentialBC("fix", fixed_r, {"u.all": 0.0})]))
+    status = IndexedStruct()
+    pb.set_solver(Newton({"i_max": 30, "eps_a": 1e-10, "eps_r": 1e-8},
+                         lin_solver=ScipyDirect({}), status=status))
+    variables = pb.solve(save_results=False)
+    wall = time.perf_counter() - t0
+    return variables["u"].get_state_in_region(omega), wall, int(status.n_iter)
+
+
+def run_sfepy(n: int, E: float, nu: float, mixed: bool) -> dict:
+    mesh = hemisphere_mesh(n)
+    U, wall, its = solve_sfepy(mesh, E=E, nu=nu, rho_g=RHO * G * 1e-6, mixed=mixed)
+    name = "sfepy (P1-P1 u-p, TL)" if mixed else "sfepy (P1 TL, penalty)"
+    return {"solver": name, "n_tets": mesh.n_tets,
+            "n_nodes": mesh.n_nodes, "wall_s": wall, "wall_cold_s": wall, "newton": its,
+            "max_disp_mm": float(np.linalg.norm(U, axis=1).max()), "peak_mb": peak_rss_mb(),
+            "converged": True}
+
+
+def _worker(args) -> None:
+    if args.worker.startswith("sfepy"):
+        out = run_sfepy(args.n, args.E, args.nu, mixed=args.worker == "sfepy_mixed")
+    else:
+        out = run_ours(args.n, args.E, args.nu, args.worker, args.linear_solver)
+    print("RESULT " + json.dumps(out))
+
+
+def _spawn(kind: str, n: int, E: float, nu: float, linear_solver: str, timeout: float):
+    cmd = [sys.executable, __file__, "--worker", kind, "--n", str(n), "--E", str(E),
+           "--nu", str(nu), "--linear-solver", linear_solver]
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"solver": kind, "error": f"timeout after {timeout:.0f} s"}
+    for line in p.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    return {"solver": kind, "error": (p.stderr or p.stdout)[-500:]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="20k", help="comma list of 2k, 20k, 150k")
+    ap.add_argument("--E", type=float, default=1.0, help="Young's modulus, kPa")
+    ap.add_argument("--nu", type=float, default=0.49)
+    ap.add_argument("--no-sfepy", action="store_true")
+    ap.add_argument("--standard", action="store_true",
+                    help="also run the plain-tet formulation (same energy as SfePy P1)")
+    ap.add_argument("--linear-solver", default="auto")
+    ap.add_argument("--timeout", type=float, default=1800.0)
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--n", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "gravity.json")
+    args = ap.parse_args(argv)
+    if args.worker:
+        _worker(args)
+        return 0
+    rows = []
+    for size in args.sizes.split(","):
+        n = SIZES[size.strip()]
+        kinds = ["anp"] + (["standard"] if args.standard else [])
+        kinds += [] if args.no_sfepy else ["sfepy", "sfepy_mixed"]
+        for kind in kinds:
+            r = _spawn(kind, n, args.E, args.nu, args.linear_solver, args.timeout)
+            r.update(size=size, E_kPa=args.E, nu=args.nu)
+            rows.append(r)
+            print(_fmt(r), flush=True)
+    meta = {"problem": "hemisphere R=60 mm, flat face fixed, gravity -z, Neo-Hookean",
+            "rho": RHO, "g": G, "tol": 1e-8, "febio_reference_s": {"20k": 2.4, "150k": 57.0}}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def _fmt(r: dict) -> str:
+    if "error" in r:
+        return f"{r.get('size', ''):>5} {r['solver']:<28} ERROR {r['error']}"
+    split = r.get("split_s", {})
+    sp = " / ".join(f"{split.get(k, float('nan')):.2f}" for k in ("assembly", "factor", "solve"))
+    return (f"{r['size']:>5} {r['solver']:<28} tets {r['n_tets']:>7} wall {r['wall_s']:7.2f} s "
+            f"(cold {r['wall_cold_s']:6.2f}) newton {r['newton']:>3} "
+            f"asm/fac/sol {sp:>18} peak {r['peak_mb']:7.0f} MB max|u| {r['max_disp_mm']:.4f} mm")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,60 @@
+"""Gravity: a uniform body force rho * g along a unit direction, scaled by the load factor."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mechanics.effects.base import Contribution, Effect, Param, register_effect
+from mechanics.kernels import reference_geometry
+
+
+@register_effect
+class Gravity(Effect):
+    """Body force of the tissue's weight (consistent nodal loads of linear tets).
+
+    Options: ``direction`` (3,) unit vector in the mesh frame (normalised; default -z),
+    ``regions``: list of region codes that carry weight (default all),
+    ``density_by_region``: {region: kg/m^3} overriding ``density``.
+    """
+
+    name = "gravity"
+    params = (
+        Param("density", "kg/m^3", 1000.0, 0.0, 1e5, "mass density"),
+        Param("g", "m/s^2", 9.81, 0.0, 1e3, "gravitational acceleration"),
+    )
+    doc = "weight of the tissue along a gravity direction"
+    load_only = True  # adds no stiffness (dead load)
+
+    def __init__(self, mesh, **values):
+        super().__init__(mesh, **values)
+        d = np.asarray(self.options.pop("direction", (0.0, 0.0, -1.0)), float).reshape(-1)
+        if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
+            raise ValueError(f"effect 'gravity': direction must be a non-zero 3-vector, got {d}")
+        self.direction = d / np.linalg.norm(d)
+        self.regions = self.options.pop("regions", None)
+        self.density_by_region = {int(k): float(v) for k, v in
+                                  dict(self.options.pop("density_by_region", {}) or {}).items()}
+        if self.options:
+            raise ValueError(f"effect 'gravity': unknown option(s) {sorted(self.options)}")
+        self._cache = None
+
+    def nodal_weight(self, X: np.ndarray) -> np.ndarray:
+        """(N, 3) external force at full load, mN (rho g in mN/mm^3 = kg/m^3 * m/s^2 * 1e-6)."""
+        if self._cache is not None and self._cache[0] is X:
+            return self._cache[1]
+        mesh = self.mesh
+        _, V0 = reference_geometry(X, mesh.tets)
+        rho = np.full(mesh.n_tets, self.values["density"])
+        for code, value in self.density_by_region.items():
+            rho[mesh.region == code] = value
+        if self.regions is not None:
+            rho[~np.isin(mesh.region, np.asarray(list(self.regions)))] = 0.0
+        w = rho * self.values["g"] * 1e-6 * V0 / 4.0  # mN per node of each tet
+        per_node = np.bincount(mesh.tets.ravel(), weights=np.repeat(w, 4),
+                               minlength=mesh.n_nodes)
+        f = per_node[:, None] * self.direction[None, :]
+        self._cache = (X, f)
+        return f
+
+    def contribute(self, X, x, load):
+        return Contribution(-load * self.nodal_weight(X))

@@ -1,0 +1,18 @@
+"""Neo-Hookean: W = mu/2 (I1bar - 3) + (1/d)(J - 1)^2, mu = E/(2(1+nu)), d = 6(1-2nu)/E."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mechanics.materials.base import IsochoricI1Material, register_material
+
+
+@register_material
+class NeoHookean(IsochoricI1Material):
+    """The paper's compressible Neo-Hookean law (parameters E [kPa], nu)."""
+
+    name = "neo_hookean"
+
+    def psi(self, I1bar: np.ndarray):
+        half_mu = 0.5 * self.mu
+        return half_mu * (I1bar - 3.0), np.full_like(I1bar, half_mu), np.zeros_like(I1bar)

@@ -1,0 +1,467 @@
+"""Newton-Raphson with line search and adaptive load stepping.
+
+The residual is R(x) = f_int(x) (the solid) + sum of every effect's contribution, in mN per
+dof (3 * node + component). Dirichlet values of the effects' constraints are scaled by the
+load factor and imposed exactly; the Newton correction solves the reduced saddle-point system
+of :mod:`mechanics.system`. Convergence: ||R_free|| <= tol * max(||R_fixed||, ||R_free,0||),
+i.e. the out-of-balance force relative to the support reactions (or, without supports, to the
+step's initial out-of-balance force).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.sparse as sp
+
+from mechanics.linear_solvers import SingularSystem, make_linear_solver
+from mechanics.model import Model
+from mechanics.solid import InvalidConfiguration, Solid
+from mechanics.state import State
+from mechanics.system import ReducedSystem
+
+log = logging.getLogger("mechanics.solver")
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Options of :func:`solve`.
+
+    tol : relative residual norm at convergence
+    max_newton : Newton iterations per load step before the step is cut back
+    initial_steps : the first load increment is 1 / initial_steps
+    min_step : smallest load increment before giving up
+    max_cutbacks : total cut-backs allowed in one solve
+    grow_below : grow the increment (x2) after a step that took at most this many iterations
+    linear_solver : "auto" (PARDISO if installed, else scipy), "scipy" or "pardiso"
+    line_search : Crisfield-type line search on R . du
+    reuse_factor : once the relative residual is below ``reuse_below``, solve with GMRES
+        preconditioned by the last factorisation, refactorising only if GMRES stalls; the
+        GMRES iteration budget is what a new factorisation would cost in triangular solves
+        (measured: ~10 at 20k tets, ~25 at 150k), so reuse never costs much more than it saves
+    reuse_below : see ``reuse_factor``
+    progress : log every Newton iteration at INFO level
+    """
+
+    tol: float = 1e-8
+    max_newton: int = 20
+    initial_steps: int = 1
+    min_step: float = 1e-4
+    max_cutbacks: int = 20
+    grow_below: int = 6
+    linear_solver: str = "auto"
+    line_search: bool = True
+    reuse_factor: bool = False  # measured at 20k tets: GMRES needs >10 solves, no gain
+    reuse_below: float = 0.05
+    progress: bool = False
+
+
+class SolverError(RuntimeError):
+    """Divergence after the last cut-back, or an unconstrained model.
+
+    ``state`` is the last converged :class:`State` (``converged=False``, its ``load`` < 1).
+    """
+
+    def __init__(self, message: str, state: State | None = None):
+        super().__init__(message)
+        self.state = state
+
+
+# -- residual and tangent ------------------------------------------------------------------
+def _solid(model: Model, X: np.ndarray) -> Solid:
+    return Solid(model.mesh.tets, model.mesh.region, model.materials, X,
+                 formulation=model.formulation)
+
+
+def _effects(model: Model, X, x, load):
+    force = np.zeros(3 * len(X))
+    rows, cols, vals = [], [], []
+    for eff in model.effects:
+        c = eff.contribute(X, x, load)
+        force += np.asarray(c.force, float).reshape(-1)
+        if len(c.vals):
+            rows.append(np.asarray(c.rows))
+            cols.append(np.asarray(c.cols))
+            vals.append(np.asarray(c.vals, float))
+    if rows:
+        return force, np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
+    return force, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+
+
+def residual_and_tangent(model: Model, X: np.ndarray, x: np.ndarray,
+                         load: float) -> tuple[np.ndarray, sp.csr_matrix]:
+    """Full residual R (3N,) mN and tangent dR/dx (3N, 3N) mN/mm, no constraints applied.
+
+    The pressure of the "anp" formulation is eliminated (condensed tangent).
+    """
+    X = np.asarray(X, float)
+    x = np.asarray(x, float)
+    solid = _solid(model, X)
+    ev = solid.evaluate(x)
+    f, r, c, v = _effects(model, X, x, load)
+    R = ev.force.reshape(-1) + f
+    K = solid.condensed_tangent(ev)
+    if len(v):
+        n = 3 * len(X)
+        K = (K + sp.coo_matrix((v, (r, c)), shape=(n, n))).tocsr()
+    return R, K
+
+
+# -- the solve -----------------------------------------------------------------------------
+_PATTERN_CACHE: dict = {}
+
+
+def _system(model: Model, solid: Solid, free: np.ndarray) -> ReducedSystem:
+    """Pattern per (topology, free dofs, formulation); reused across solves of one model."""
+    key = (id(model.mesh.tets), model.formulation, hash(free.tobytes()))
+    hit = _PATTERN_CACHE.get(key)
+    if hit is not None and hit[0] is model.mesh.tets:
+        return hit[1]
+    sysm = ReducedSystem(model.mesh.tets, solid.n_nodes, free,
+                         solid.used_nodes if model.formulation == "anp" else None)
+    if len(_PATTERN_CACHE) > 8:
+        _PATTERN_CACHE.clear()
+    _PATTERN_CACHE[key] = (model.mesh.tets, sysm)
+    return sysm
+
+
+def _constraints(model: Model, n_nodes: int, used: np.ndarray):
+    fixed = np.zeros(3 * n_nodes, bool)
+    target = np.zeros(3 * n_nodes)
+    for eff in model.effects:
+        for c in eff.constraints():
+            nodes = np.asarray(c.nodes, np.int64).reshape(-1)
+            comps = tuple(int(k) for k in c.components)
+            dofs = (3 * nodes[:, None] + np.asarray(comps)[None, :])
+            fixed[dofs.ravel()] = True
+            if c.values is not None:
+                vals = np.broadcast_to(np.asarray(c.values, float), dofs.shape)
+                target[dofs.ravel()] = vals.ravel()
+            else:
+                target[dofs.ravel()] = 0.0
+    # Nodes outside every tet carry no stiffness: hold them where they are.
+    orphan = np.repeat(~used, 3)
+    fixed |= orphan
+    return fixed, target
+
+
+def _check_rigid_modes(X: np.ndarray, fixed: np.ndarray, used: np.ndarray,
+                       model: Model) -> None:
+    """Fail early when supports leave a rigid-body mode free and no effect adds stiffness."""
+    if any(type(e).contribute is not _base_contribute for e in model.effects
+           if not _is_load_only(e)):
+        return  # an effect may hold the body (springs, contact): rely on the solve check
+    Xc = X[used].mean(axis=0)
+    d = X - Xc
+    scale = np.abs(d[used]).max() or 1.0
+    n = len(X)
+    modes = np.zeros((6, n, 3))
+    for k in range(3):
+        modes[k, :, k] = 1.0
+        axis = np.eye(3)[k]
+        modes[3 + k] = np.cross(axis, d) / scale
+    Rc = modes.reshape(6, -1)[:, fixed & np.repeat(used, 3)]
+    s = np.linalg.svd(Rc @ Rc.T, compute_uv=False) if Rc.size else np.zeros(6)
+    if s.min() <= 1e-10 * max(s.max(), 1.0):
+        raise SolverError(
+            "mechanics: the model is not constrained against rigid-body motion "
+            f"({int(np.sum(s <= 1e-10 * max(s.max(), 1.0)))} free mode(s)); add supports "
+            "(e.g. a 'fixed' effect on a node set)"
+        )
+
+
+from mechanics.effects.base import Effect  # noqa: E402
+
+_base_contribute = Effect.contribute
+
+
+def _is_load_only(eff) -> bool:
+    return bool(getattr(eff, "load_only", False))
+
+
+class _Newton:
+    """One solve's working data (not public)."""
+
+    def __init__(self, model: Model, X: np.ndarray, options: SolverOptions):
+        self.model, self.X, self.opt = model, X, options
+        self.solid = _solid(model, X)
+        self.n = len(X)
+        self.fixed, self.target = _constraints(model, self.n, self.solid.used_nodes)
+        self.free = ~self.fixed
+        _check_rigid_modes(X, self.fixed, self.solid.used_nodes, model)
+        self.sys = _system(model, self.solid, self.free)
+        self.symmetric = all(getattr(e, "symmetric", True) for e in model.effects)
+        self.lin = make_linear_solver(options.linear_solver)
+        self.anp = model.formulation == "anp"
+        if self.anp:
+            sel = self.solid.used_nodes
+            self.pp_diag = -self.solid.V_node[sel] / self.solid.bulk_node[sel]
+        else:
+            self.pp_diag = None
+        self.t = {"assembly": 0.0, "factor": 0.0, "solve": 0.0}
+        self.factored = False
+        self.last_factor_s = self.last_solve_s = 0.0
+        self.n_factor = 0
+        self.krylov_used = 0
+
+    def evaluate(self, u: np.ndarray, load: float, *, tangent: bool):
+        t0 = time.perf_counter()
+        x = self.X + u.reshape(-1, 3)
+        ev = self.solid.evaluate(x, tangent=tangent)
+        f, r, c, v = _effects(self.model, self.X, x, load)
+        R = ev.force.reshape(-1) + f
+        if not np.all(np.isfinite(R)):
+            raise InvalidConfiguration("the residual is not finite")
+        A = None
+        if tangent:
+            A = self.sys.assemble(ev.Kup, ev.dv, self.pp_diag)
+            extra = self.sys.extra_upper(r, c, v, symmetric=self.symmetric)
+            if not self.symmetric:
+                from mechanics.system import full_from_upper
+
+                A = full_from_upper(A)
+            if extra is not None:
+                A = (A + extra).tocsr()
+        self.t["assembly"] += time.perf_counter() - t0
+        return ev, R, A
+
+    def norms(self, R):
+        rf = float(np.linalg.norm(R[self.free]))
+        rc = float(np.linalg.norm(R[self.fixed]))
+        return rf, rc
+
+    def _matvec(self, A):
+        if not self.symmetric:
+            return A.__matmul__
+        d = A.diagonal()
+        At = A.T.tocsr()
+        return lambda y: A @ y + At @ y - d * y
+
+    def direction(self, A, R, rel: float) -> np.ndarray:
+        b = np.zeros(self.sys.n)
+        b[: self.sys.n_free] = -R[self.free]
+        matvec = self._matvec(A)
+        y = None
+        budget = int(0.8 * self.last_factor_s / max(self.last_solve_s, 1e-9))
+        if self.opt.reuse_factor and self.factored and rel < self.opt.reuse_below \
+                and budget >= 3:
+            y = self._krylov(matvec, b, rel, min(budget, 30))
+            self.krylov_used += y is not None
+        if y is None:
+            t0 = time.perf_counter()
+            self.lin.factorize(A, symmetric=self.symmetric)
+            self.factored = True
+            self.n_factor += 1
+            t1 = time.perf_counter()
+            y = self.lin.solve(b)
+            self.last_factor_s = t1 - t0
+            self.last_solve_s = time.perf_counter() - t1
+            self.t["factor"] += t1 - t0
+            self.t["solve"] += time.perf_counter() - t1
+            # Backstop for singular tangents that the factorisation let through (perturbed
+            # pivots): the solve must satisfy the system it was given.
+            err = np.linalg.norm(matvec(y) - b) / max(np.linalg.norm(b), 1e-300)
+            if not np.isfinite(err) or err > 1e-6:
+                self.factored = False
+                raise SingularSystem(f"linear solve residual {err:.2e}")
+        du = np.zeros(3 * self.n)
+        du[self.free] = y[: self.sys.n_free]
+        return du
+
+    def _krylov(self, matvec, b, rel, maxit):
+        """GMRES on the new tangent, preconditioned by the previous factorisation."""
+        import scipy.sparse.linalg as spla
+
+        t0 = time.perf_counter()
+        n = len(b)
+        op = spla.LinearOperator((n, n), matvec=matvec, dtype=float)
+        pre = spla.LinearOperator((n, n), matvec=self.lin.solve, dtype=float)
+        eta = min(1e-4, 0.1 * rel)
+        y, info = spla.gmres(op, b, rtol=eta, atol=0.0, restart=maxit, maxiter=1, M=pre)
+        self.t["solve"] += time.perf_counter() - t0
+        if info != 0 or not np.all(np.isfinite(y)):
+            return None
+        err = np.linalg.norm(matvec(y) - b) / max(np.linalg.norm(b), 1e-300)
+        return y if err <= max(eta, 1e-12) * 1.01 else None
+
+
+def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = None,
+          options: SolverOptions = SolverOptions()) -> State:
+    """Static equilibrium of ``model`` under its effects at full load.
+
+    Parameters
+    ----------
+    model : Model
+    X : (N, 3) reference (stress-free) positions, mm; default ``model.mesh.nodes``
+    u0 : (N, 3) initial guess of the displacement at full load, mm (e.g. a previous solution)
+    options : SolverOptions
+
+    Returns
+    -------
+    State at load 1.
+
+    Raises
+    ------
+    ValueError : inverted reference mesh, missing material, bad input shapes
+    SolverError : unconstrained model, or divergence after the last cut-back; ``.state``
+        holds the last converged state
+    """
+    t_start = time.perf_counter()
+    X = np.array(model.mesh.nodes if X is None else X, dtype=np.float64)
+    if X.shape != model.mesh.nodes.shape:
+        raise ValueError(f"mechanics: X must be {model.mesh.nodes.shape}, got {X.shape}")
+    nw = _Newton(model, X, options)
+    opt = options
+    n3 = 3 * nw.n
+    guess = None
+    if u0 is not None:
+        guess = np.asarray(u0, float).reshape(-1)
+        if guess.shape != (n3,):
+            raise ValueError(f"mechanics: u0 must be {X.shape}, got {np.shape(u0)}")
+
+    lam, u = 0.0, np.zeros(n3)
+    prev = None  # (lam, u) of the converged step before the last one
+    last_ev = None
+    dlam = 1.0 / max(1, int(opt.initial_steps))
+    cutbacks = 0
+    just_cut = False
+    steps: list[dict] = []
+    step_no = 0
+
+    def state(converged: bool, ev) -> State:
+        if ev is None:
+            ev = nw.solid.evaluate(X + u.reshape(-1, 3), tangent=False)
+        stress = nw.solid.cauchy_stress(ev)
+        J = np.linalg.det(ev.F)
+        uu = u.reshape(-1, 3).copy()
+        p = ev.p_node if nw.anp else ev.p_elem
+        return State(uu, converged, float(lam), stress, J, tuple(steps),
+                     time.perf_counter() - t_start, p.copy(), X.copy())
+
+    while lam < 1.0 - 1e-12:
+        dlam = min(dlam, 1.0 - lam)
+        new_lam = 1.0 if lam + dlam > 1.0 - 1e-12 else lam + dlam
+        step_no += 1
+        x_conv = X + u.reshape(-1, 3)
+        for eff in model.effects:
+            eff.begin_step(X, x_conv)
+        t_before = dict(nw.t)
+        f_before, k_before = nw.n_factor, nw.krylov_used
+        entry = {"step": step_no, "load": new_lam, "newton": 0, "residuals": [],
+                 "converged": False, "cutback": None}
+        # Predictor: extrapolate the last two converged states, else scale the guess.
+        u_try = u.copy()
+        if prev is not None and lam > prev[0]:
+            u_try = u + (new_lam - lam) / (lam - prev[0]) * (u - prev[1])
+        elif guess is not None:
+            u_try = guess * new_lam
+        u_try[nw.fixed] = new_lam * nw.target[nw.fixed]
+        try:
+            ev, R, A = nw.evaluate(u_try, new_lam, tangent=True)
+        except InvalidConfiguration:
+            u_try = u.copy()
+            u_try[nw.fixed] = new_lam * nw.target[nw.fixed]
+            try:
+                ev, R, A = nw.evaluate(u_try, new_lam, tangent=True)
+            except InvalidConfiguration as exc:
+                ev = None
+                entry["cutback"] = f"predictor invalid: {exc}"
+        ok = False
+        if ev is not None:
+            ok, u_try, ev, reason = _newton(nw, u_try, new_lam, ev, R, A, entry)
+            entry["cutback"] = None if ok else reason
+        for k in nw.t:
+            entry[f"t_{k}"] = nw.t[k] - t_before[k]
+        entry["factorizations"] = nw.n_factor - f_before
+        entry["krylov_solves"] = nw.krylov_used - k_before
+        entry["converged"] = ok
+        steps.append(entry)
+        if opt.progress:
+            log.info("step %d load %.4f: %s after %d iterations", step_no, new_lam,
+                     "converged" if ok else f"cut back ({entry['cutback']})", entry["newton"])
+        if ok:
+            prev = (lam, u)
+            lam, u, last_ev = new_lam, u_try, ev
+            if entry["newton"] <= opt.grow_below and not just_cut:
+                dlam *= 2.0
+            just_cut = False
+            continue
+        just_cut = True
+        if lam == 0.0 and (entry["cutback"] or "").startswith("singular"):
+            raise SolverError(f"mechanics: {entry['cutback']} at the first load step",
+                              state(False, None))
+        cutbacks += 1
+        dlam *= 0.5
+        if dlam < opt.min_step or cutbacks > opt.max_cutbacks:
+            st = state(False, last_ev)
+            raise SolverError(
+                f"mechanics: Newton diverged at load {new_lam:.4g} after {cutbacks} cut-back(s) "
+                f"(last reason: {entry['cutback']}); last converged load {lam:.4g}",
+                st,
+            )
+    return replace(state(True, last_ev), wall_time=time.perf_counter() - t_start)
+
+
+def _newton(nw: _Newton, u, lam, ev, R, A, entry):
+    """Newton iterations of one load step. Returns (ok, u, ev, reason)."""
+    opt = nw.opt
+    rf, rc = nw.norms(R)
+    r0 = rf
+    for it in range(opt.max_newton + 1):
+        ref = max(rc, r0, 1e-300)
+        rel = rf / ref
+        entry["residuals"].append(rel)
+        if opt.progress:
+            log.info("  load %.4f iteration %d: relative residual %.3e", lam, it, rel)
+        if rel <= opt.tol:
+            return True, u, ev, None
+        if it == opt.max_newton:
+            return False, u, ev, f"no convergence in {opt.max_newton} iterations"
+        if rf > 1e6 * max(r0, 1e-300) and it > 0:
+            return False, u, ev, "residual diverged"
+        if it >= 8 and rel > 1e-3:  # no sign of quadratic convergence: cut back early
+            return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
+        try:
+            du = nw.direction(A, R, rel)
+        except SingularSystem as exc:
+            return False, u, ev, f"singular tangent ({exc}); is the model constrained?"
+        entry["newton"] += 1
+        s0 = float(R @ du)
+        eta, accepted = 1.0, None
+        for _ls in range(8):
+            try:
+                ev1, R1, A1 = nw.evaluate(u + eta * du, lam, tangent=True)
+            except InvalidConfiguration:
+                eta *= 0.5
+                continue
+            if not opt.line_search or s0 >= 0.0:
+                accepted = (eta, ev1, R1, A1)
+                break
+            s1 = float(R1 @ du)
+            if abs(s1) <= 0.9 * abs(s0) or accepted is not None:
+                accepted = (eta, ev1, R1, A1)
+                break
+            accepted = (eta, ev1, R1, A1)  # keep as fallback, try one secant step
+            r = s0 / (s0 - s1)  # root of the linear interpolation of s(eta) / eta
+            if not (0.0 < r < 1.0) or abs(r - 1.0) < 0.05:
+                break
+            new_eta = max(0.1, min(1.0, r)) * eta
+            try:
+                ev2, R2, A2 = nw.evaluate(u + new_eta * du, lam, tangent=True)
+            except InvalidConfiguration:
+                break
+            if np.linalg.norm(R2[nw.free]) < np.linalg.norm(R1[nw.free]) or \
+                    abs(float(R2 @ du)) < abs(s1):
+                accepted = (new_eta, ev2, R2, A2)
+            break
+        if accepted is None:
+            return False, u, ev, "element inversion (J <= 0) along the Newton direction"
+        eta, ev, R, A = accepted
+        u = u + eta * du
+        rf, rc = nw.norms(R)
+        if not np.isfinite(rf):
+            return False, u, ev, "residual is not finite"
+    return False, u, ev, "no convergence"

@@ -1,0 +1,52 @@
+"""The result of a solve: a plain, immutable value."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class State:
+    """Solved (or last converged) state.
+
+    u : (N, 3) displacements from the reference positions X, mm
+    converged : True when the full load was reached
+    load : load factor reached, in [0, 1]
+    stress : (M, 3, 3) Cauchy stress per element, kPa
+    J : (M,) volume ratio per element
+    log : per load step a dict with ``load``, ``step``, ``newton`` (iterations),
+        ``residuals`` (relative norms), ``converged``, ``cutback`` reason or None,
+        ``t_assembly``, ``t_factor``, ``t_solve`` (s)
+    wall_time : s
+    pressure : (N,) nodal pressure (kPa, formulation "anp") or (M,) per element
+    X : (N, 3) reference positions used, mm
+    """
+
+    u: np.ndarray
+    converged: bool
+    load: float
+    stress: np.ndarray
+    J: np.ndarray
+    log: tuple[dict, ...] = ()
+    wall_time: float = 0.0
+    pressure: np.ndarray | None = None
+    X: np.ndarray | None = None
+
+    @property
+    def x(self) -> np.ndarray:
+        """Current positions (N, 3) mm."""
+        return self.X + self.u
+
+    @property
+    def newton_iterations(self) -> int:
+        return int(sum(e["newton"] for e in self.log))
+
+    @property
+    def load_steps(self) -> int:
+        return int(sum(1 for e in self.log if e["converged"]))
+
+    def max_displacement(self) -> float:
+        """Largest nodal displacement magnitude, mm."""
+        return float(np.linalg.norm(self.u, axis=1).max()) if len(self.u) else 0.0

@@ -1,0 +1,68 @@
+"""VTU round trip and the ``breastmodel simulate`` command."""
+
+import json
+
+import numpy as np
+import pytest
+from zoo import hemisphere
+
+from mechanics.export import read_vtu, write_vtu
+from mechanics.model import build_model
+from mechanics.solver import SolverOptions, solve
+
+pytest.importorskip("meshio")
+
+
+def test_vtu_round_trip_with_state(tmp_path):
+    import meshio
+
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, {1: {"name": "gent", "E": 1.0, "nu": 0.49, "Jm": 5.0}},
+                        {"gravity": {"direction": (1, 0, 0)}, "fixed": {"node_set": "fixed"}})
+    st = solve(model, options=SolverOptions(linear_solver="scipy"))
+    write_vtu(tmp_path / "r.vtu", mesh, st)
+    back = read_vtu(tmp_path / "r.vtu")
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    np.testing.assert_array_equal(back.region, mesh.region)
+    np.testing.assert_array_equal(back.node_sets["fixed"], mesh.node_sets["fixed"])
+    raw = meshio.read(tmp_path / "r.vtu")
+    np.testing.assert_allclose(raw.point_data["displacement"], st.u)
+    stretch = raw.cell_data["stretch"][0]
+    assert stretch.shape == (mesh.n_tets, 3) and np.all(stretch[:, 0] >= stretch[:, 2])
+    np.testing.assert_allclose(raw.cell_data["stress"][0], st.stress.reshape(-1, 9))
+
+
+def test_read_vtu_errors(tmp_path):
+    with pytest.raises(OSError, match="does not exist"):
+        read_vtu(tmp_path / "missing.vtu")
+    (tmp_path / "bad.vtu").write_text("not a mesh")
+    with pytest.raises(ValueError, match="cannot read mesh"):
+        read_vtu(tmp_path / "bad.vtu")
+
+
+def test_simulate_command(tmp_path):
+    from breastmodel.cli import main
+
+    mesh = hemisphere(60.0, 4)
+    write_vtu(tmp_path / "mesh.vtu", mesh)
+    (tmp_path / "sim.toml").write_text(
+        '[materials.1]\nname = "neo_hookean"\nE = 1.0\nnu = 0.49\n\n'
+        '[[supports]]\nnode_set = "fixed"\n\n'
+        '[gravity]\ndirection = [0, 0, -1]\ndensity = 1000.0\ng = 9.81\n\n'
+        '[solver]\nlinear_solver = "scipy"\n'
+    )
+    out = tmp_path / "out"
+    assert main(["simulate", str(tmp_path / "mesh.vtu"), "--config", str(tmp_path / "sim.toml"),
+                 "--out", str(out)]) == 0
+    summary = json.loads((out / "solve.json").read_text())
+    assert summary["converged"] and summary["newton_iterations"] >= 2
+    import meshio
+
+    u = meshio.read(out / "result.vtu").point_data["displacement"]
+    assert u.shape == (mesh.n_nodes, 3)
+    assert abs(np.linalg.norm(u, axis=1).max() - summary["max_displacement_mm"]) < 1e-9
+    assert u[:, 2].min() < -1.0
+    # A typo in the config is one clear error, exit code 1.
+    (tmp_path / "typo.toml").write_text('[materials.1]\nname = "neo_hookean"\n[gravty]\n')
+    assert main(["simulate", str(tmp_path / "mesh.vtu"), "--config",
+                 str(tmp_path / "typo.toml"), "--out", str(out)]) == 1

@@ -1,0 +1,113 @@
+"""Solver behaviour: equilibrium of gravity, cut-backs, clear errors, soft tissue at 0.2 kPa."""
+
+import numpy as np
+import pytest
+from zoo import box, cube6, hemisphere
+
+from mechanics.mesh import Mesh
+from mechanics.model import build_model
+from mechanics.solver import SolverError, SolverOptions, residual_and_tangent, solve
+
+OPT = SolverOptions(linear_solver="scipy")
+NH = {1: {"name": "neo_hookean", "E": 1.0, "nu": 0.49}}
+
+
+def test_support_reactions_balance_the_weight():
+    mesh = hemisphere(60.0, 6)
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 0, -1)},
+                                   "fixed": {"node_set": "fixed"}})
+    st = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10))
+    assert st.converged and st.load == 1.0
+    R, _ = residual_and_tangent(model, mesh.nodes, st.x, 1.0)
+    R = R.reshape(-1, 3)
+    weight = 1000 * 9.81 * 1e-6 * mesh.signed_volumes().sum()  # mN
+    reaction = R[mesh.node_sets["fixed"]].sum(axis=0)  # force of the supports on the body
+    np.testing.assert_allclose(reaction, [0, 0, weight], rtol=0, atol=1e-8 * weight)
+    # Sags downwards, the flat face stays put, and volume is nearly preserved (nu = 0.49).
+    assert st.u[:, 2].min() < -1.0
+    assert np.abs(st.u[mesh.node_sets["fixed"]]).max() == 0.0
+    vol = Mesh(st.x, mesh.tets, mesh.region).signed_volumes().sum()
+    assert abs(vol / mesh.signed_volumes().sum() - 1) < 0.02
+    assert st.log[0]["newton"] >= 2 and all(e["residuals"] for e in st.log)
+
+
+def test_very_soft_tissue_converges_with_cutbacks():
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, {1: {"name": "neo_hookean", "E": 0.2, "nu": 0.49}},
+                        {"gravity": {"direction": (0, 0, -1)}, "fixed": {"node_set": "fixed"}})
+    st = solve(model, options=OPT)
+    assert st.converged
+    assert st.max_displacement() > 30.0  # large sag of a 60 mm hemisphere at 0.2 kPa
+    assert np.all(st.J > 0)
+
+
+def test_divergence_keeps_last_converged_state():
+    # Squashing a unit cube by 1.5 mm must invert elements somewhere before full load.
+    mesh = box((2, 2, 2))
+    model = build_model(mesh, NH, {
+        "fixed:base": {"node_set": "xmin"},
+        "fixed:push": {"node_set": "xmax", "values": [-1.5, 0.0, 0.0]},
+    })
+    with pytest.raises(SolverError, match="last converged load") as info:
+        solve(model, options=SolverOptions(linear_solver="scipy", max_cutbacks=6))
+    st = info.value.state
+    assert st is not None and not st.converged
+    assert 0.0 < st.load < 1.0 / 1.5
+    np.testing.assert_allclose(st.u[mesh.node_sets["xmax"], 0], -1.5 * st.load)
+    assert np.all(st.J > 0)
+
+
+@pytest.mark.parametrize("supports", [{}, {"fixed": {"nodes": [0]}},
+                                      {"fixed": {"nodes": [0, 1], "components": [0, 1, 2]}}])
+def test_unconstrained_model_is_reported(supports):
+    mesh = cube6()
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 0, -1)}, **supports})
+    with pytest.raises(SolverError, match="rigid-body"):
+        solve(model, options=OPT)
+
+
+def test_inverted_reference_mesh_is_reported():
+    mesh = cube6()
+    tets = mesh.tets.copy()
+    tets[2, [0, 1]] = tets[2, [1, 0]]
+    bad = Mesh(mesh.nodes, tets, mesh.region, node_sets=mesh.node_sets)
+    model = build_model(bad, NH, {"fixed": {"node_set": "zmin"}})
+    with pytest.raises(ValueError, match="inverted or degenerate mesh: 1 of 6"):
+        solve(model, options=OPT)
+
+
+def test_bad_inputs_have_clear_messages():
+    mesh = cube6()
+    with pytest.raises(ValueError, match="outside"):
+        build_model(mesh, {1: {"name": "neo_hookean", "E": 1.0, "nu": 0.5}}, {})
+    with pytest.raises(ValueError, match="unknown material"):
+        build_model(mesh, {1: {"name": "mooney", "E": 1.0}}, {})
+    with pytest.raises(ValueError, match="regions \\[1\\]"):
+        build_model(mesh, {2: {"name": "linear"}}, {})
+    with pytest.raises(ValueError, match="no node set 'wall'"):
+        build_model(mesh, NH, {"fixed": {"node_set": "wall"}})
+
+
+def test_initial_guess_and_options_agree_with_default():
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 1, 0)},
+                                   "fixed": {"node_set": "fixed"}})
+    ref = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10))
+    warm = solve(model, u0=ref.u * 1.05, options=SolverOptions(linear_solver="scipy",
+                                                               tol=1e-10))
+    stepped = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10,
+                                                 initial_steps=4, grow_below=0))
+    assert warm.newton_iterations < ref.newton_iterations
+    assert stepped.load_steps == 4
+    for other in (warm, stepped):
+        np.testing.assert_allclose(other.u, ref.u, atol=1e-7 * np.abs(ref.u).max())
+
+
+def test_pardiso_and_scipy_agree():
+    pytest.importorskip("pypardiso")
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 0, -1)},
+                                   "fixed": {"node_set": "fixed"}})
+    a = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10))
+    b = solve(model, options=SolverOptions(linear_solver="pardiso", tol=1e-10))
+    np.testing.assert_allclose(b.u, a.u, atol=1e-8 * np.abs(a.u).max())
