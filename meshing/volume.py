@@ -1,0 +1,265 @@
+"""Label map -> conforming tetrahedral mesh of breast and muscle with region tags and sets."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import SimpleITK as sitk
+
+from mechanics.mesh import REGIONS, Mesh
+from meshing import _occupancy, _tetwild
+from meshing.improve import relocate_free_nodes
+from meshing.labels import Grid, TissueMasks, repaired, tissue_masks
+from meshing.sets import named_sets
+from meshing.surface import distance_to_mask_mm, tissue_surface
+
+log = logging.getLogger(__name__)
+
+
+def midline_x(breast: np.ndarray, grid: Grid) -> float:
+    """Physical x (mm) of the sagittal plane that separates the left and right breast.
+
+    The plane sits where the breast tissue is thinnest (fewest voxels per x-slice) in the
+    central 40 % of its x-extent; two separate breasts give a gap of empty slices, whose
+    middle is taken.
+    """
+    counts = breast.sum(axis=(0, 1)).astype(float)  # per i (x index)
+    idx = np.flatnonzero(counts)
+    lo, hi = idx.min(), idx.max()
+    a = int(lo + 0.3 * (hi - lo))
+    b = max(int(np.ceil(lo + 0.7 * (hi - lo))), a + 1)
+    window = counts[a : b + 1]
+    mins = np.flatnonzero(window == window.min())
+    # middle of the longest run of minimal slices
+    runs = np.split(mins, np.flatnonzero(np.diff(mins) > 1) + 1)
+    run = max(runs, key=len)
+    i_mid = a + 0.5 * (run[0] + run[-1])
+    if window.min() > 0:
+        repaired(
+            "meshing: left and right breast tissue touch; split on the sagittal plane where "
+            f"it is thinnest (index i={i_mid:.1f})"
+        )
+    centre = np.array([[i_mid, (grid.size[1] - 1) / 2, (grid.size[2] - 1) / 2]])
+    return float(grid.to_physical(centre)[0, 0])
+
+
+def _interface_patch(vb, fb, vu, fu, masks: TissueMasks, *, gap_mm: float) -> np.ndarray:
+    """Triangles of the breast surface that lie on muscle and away from the union's skin."""
+    c = vb[fb].mean(1)
+    near_muscle = distance_to_mask_mm(masks.muscle, masks.grid, c) < masks.grid.spacing.max()
+    off_skin = _occupancy.distance(vu, fu, c) > gap_mm
+    return fb[near_muscle & off_skin]
+
+
+def _drop_unused(nodes, tets):
+    used = np.unique(tets)
+    remap = np.full(len(nodes), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return nodes[used], remap[tets]
+
+
+def _clean_isolated(tets: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """Give a tet the region of its face neighbours when all of them disagree with it
+    (single misclassified tets at the fuzzy end of the interface)."""
+    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+    owner = np.repeat(np.arange(len(tets)), 4)
+    _, inv, cnt = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    shared = cnt[inv] == 2
+    order = np.argsort(inv[shared], kind="stable")
+    pairs = owner[shared][order].reshape(-1, 2)
+    out = region.copy()
+    for _ in range(2):
+        n_same = np.zeros(len(tets), int)
+        n_nb = np.zeros(len(tets), int)
+        same = out[pairs[:, 0]] == out[pairs[:, 1]]
+        for k in (0, 1):
+            np.add.at(n_nb, pairs[:, k], 1)
+            np.add.at(n_same, pairs[:, k], same)
+        flip = (n_nb >= 3) & (n_same == 0)
+        if not flip.any():
+            break
+        # the region most of the neighbours have (two tissues only: just the other one)
+        nb_region = np.zeros(len(tets), out.dtype)
+        nb_region[pairs[:, 0]] = out[pairs[:, 1]]
+        nb_region[pairs[:, 1]] = out[pairs[:, 0]]
+        out[flip] = nb_region[flip]
+    return out
+
+
+def _grid_tets(lo: np.ndarray, hi: np.ndarray, step: float):
+    """Structured tet mesh of the box [lo, hi] (mm): each cube split into six tets."""
+    n = np.maximum(np.ceil((hi - lo) / step).astype(int), 1)
+    axes = [lo[a] + (hi[a] - lo[a]) * np.arange(n[a] + 1) / n[a] for a in range(3)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    idx = np.arange(len(pts)).reshape(n + 1)
+    corner = [idx[i : i + n[0], j : j + n[1], k : k + n[2]].ravel()
+              for i in (0, 1) for j in (0, 1) for k in (0, 1)]
+    c = np.stack(corner, 1)  # cube corners, bit order (i, j, k)
+    kuhn = [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]]
+    return pts, np.vstack([c[:, t] for t in kuhn]).astype(np.int32)
+
+
+def _sizing_field(vu, fu, size_mm: float):
+    """Target edge length on a background grid: ``size_mm`` inside the tissue and within
+    1.5 sizes of it, growing to 5 sizes far outside (the empty parts of the box)."""
+    lo, hi = vu.min(0), vu.max(0)
+    pad = 0.25 * np.linalg.norm(hi - lo)
+    pts, tets = _grid_tets(lo - pad, hi + pad, 2.0 * size_mm)
+    d = _occupancy.distance(vu, fu, pts)
+    d[_occupancy.inside(vu, fu, pts)] = 0.0
+    val = size_mm * np.clip(1.0 + (d - 1.5 * size_mm) / (1.125 * size_mm), 1.0, 5.0)
+    return pts, tets, val
+
+
+def _drop_boundary_slivers(nodes, tets, *, max_skew: float = 0.9, rounds: int = 4):
+    """(M,) bool: tets to keep after removing flat tets that lie on the boundary.
+
+    A flat tet that hangs on the boundary by two faces, or by one face with its fourth node
+    on the boundary too (a cap over a shallow dip), carries almost no volume; these are
+    the typical worst elements of an envelope-constrained mesher.
+    """
+    from meshing.quality import element_quality
+    from meshing.sets import tet_faces
+
+    keep = np.ones(len(tets), bool)
+    for _ in range(rounds):
+        sub = np.flatnonzero(keep)
+        bf, owner, _, _ = tet_faces(tets[sub])
+        n_bnd = np.bincount(owner, minlength=len(sub))
+        on_bnd = np.zeros(len(nodes), bool)
+        on_bnd[bf.ravel()] = True
+        all_on = on_bnd[tets[sub]].all(1)
+        skew = element_quality(nodes, tets[sub])["skewness"]
+        drop = (skew > max_skew) & ((n_bnd >= 2) | ((n_bnd == 1) & all_on))
+        if not drop.any():
+            break
+        keep[sub[drop]] = False
+    return keep
+
+
+def _relocate(nodes, tets, region):
+    """Untangle flat tets by moving nodes that are not on the outer boundary (interface
+    nodes included: they move by a fraction of an element, inside the flat tets' span)."""
+    from meshing.sets import tet_faces
+
+    bf, _, _, _ = tet_faces(tets)
+    fixed = np.zeros(len(nodes), bool)
+    fixed[bf.ravel()] = True
+    return relocate_free_nodes(nodes, tets, ~fixed)
+
+
+def mesh_labels(
+    labels: sitk.Image,
+    *,
+    size_mm: float = 8.0,
+    seed: int | None = None,
+    progress: bool = False,
+    keep_gland: bool = False,
+    surface_edge_mm: float | None = None,
+    threads: int = 0,
+) -> Mesh:
+    """Tetrahedral mesh of breast and muscle tissue from a label map.
+
+    Breast (label 1, and gland 3 unless ``keep_gland``) and muscle (label 2) get one
+    conforming mesh: their common interface is a set of shared tet faces. Regions follow
+    ``mechanics.mesh.REGIONS``; the left breast (larger x) and the right one are split on the
+    sagittal plane where the breast tissue is thinnest.
+
+    Parameters
+    ----------
+    labels : sitk.Image
+        Label map (0 background, 1 breast, 2 muscle, 3 gland), physical LPS mm.
+    size_mm : float
+        Target tet edge length, mm.
+    seed : int, optional
+        Unused by fTetWild (its output varies with thread scheduling); kept for the
+        pipeline's uniform signature and recorded nowhere else.
+    progress : bool
+        Log the stages at INFO level.
+    keep_gland : bool
+        Tag tets inside the gland (label 3) as gland_left / gland_right.
+    surface_edge_mm : float, optional
+        Edge length of the intermediate surfaces (default ``0.75 * size_mm``).
+    threads : int
+        fTetWild threads (0: all cores).
+
+    Returns
+    -------
+    Mesh
+        With face sets ``skin``, ``interface``; node sets ``fixed``, ``skin``, ``interface``,
+        ``skin_superior``, ``skin_inferior``, ``fascia_superior``, ``fascia_inferior``;
+        node pairs ``ligament_inframammary``, ``ligament_medial``, ``ligament_lateral``.
+
+    Raises
+    ------
+    ValueError
+        Bad label map (see :func:`meshing.labels.tissue_masks`).
+    RuntimeError
+        Surfaces that cannot be repaired, or a tet mesh that misses a tissue.
+    """
+    del seed
+    if not size_mm > 0:
+        raise ValueError(f"meshing: size_mm must be positive, got {size_mm}")
+    say = log.info if progress else log.debug
+    t0 = time.perf_counter()
+    masks = tissue_masks(labels)
+    grid = masks.grid
+    edge = surface_edge_mm or 0.75 * size_mm
+    edge = max(edge, 0.75 * float(grid.spacing.min()))
+    vu, fu = tissue_surface(masks.union, grid, target_edge_mm=edge, what="breast and muscle")
+    vb, fb = tissue_surface(masks.breast, grid, target_edge_mm=edge, what="breast")
+    say("meshing: surfaces %d + %d triangles (%.1f s)", len(fu), len(fb), time.perf_counter() - t0)
+
+    voxel = float(grid.spacing.max())
+    gap = max(1.5 * voxel, 0.2 * size_mm)
+    fi = _interface_patch(vb, fb, vu, fu, masks, gap_mm=gap)
+    soup_v = [vu, vb]
+    soup_f = [fu, fi + len(vu)]
+    if keep_gland and masks.gland.any():
+        vg, fg = tissue_surface(masks.gland, grid, target_edge_mm=edge, what="gland")
+        soup_v.append(vg)
+        soup_f.append(fg + len(vu) + len(vb))
+    v_all, f_all = np.vstack(soup_v), np.vstack(soup_f)
+    used = np.unique(f_all)
+    remap = np.full(len(v_all), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    v_all, f_all = v_all[used], remap[f_all]
+
+    epsilon = 0.1 * size_mm  # tet faces stay within this of the surfaces
+    nodes, tets = _tetwild.tetrahedralize(
+        v_all, f_all, edge_mm=size_mm, epsilon_mm=epsilon, threads=threads,
+        sizing=_sizing_field(vu, fu, size_mm),
+    )
+    say("meshing: fTetWild %d tets (%.1f s)", len(tets), time.perf_counter() - t0)
+
+    centroids = nodes[tets].mean(1)
+    in_union = _occupancy.inside(vu, fu, centroids)
+    tets, centroids = tets[in_union], centroids[in_union]
+    keep = _drop_boundary_slivers(nodes, tets)
+    if (~keep).any():
+        log.debug("meshing: dropped %d boundary slivers", int((~keep).sum()))
+    tets, centroids = tets[keep], centroids[keep]
+    is_breast = _occupancy.inside(vb, fb, centroids)
+    tissue = np.where(is_breast, 1, 2)
+    tissue = _clean_isolated(tets, tissue)
+    if not (tissue == 1).any() or not (tissue == 2).any():
+        raise RuntimeError("meshing: the tet mesh lost a tissue (breast or muscle); try a smaller "
+                           "--size")
+    x_mid = midline_x(masks.breast, grid)
+    region = np.full(len(tets), REGIONS["muscle"], np.int32)
+    left = centroids[:, 0] > x_mid
+    region[(tissue == 1) & left] = REGIONS["breast_left"]
+    region[(tissue == 1) & ~left] = REGIONS["breast_right"]
+    if keep_gland and masks.gland.any():
+        in_gland = _occupancy.inside(vg, fg, centroids) & (tissue == 1)
+        region[in_gland & left] = REGIONS["gland_left"]
+        region[in_gland & ~left] = REGIONS["gland_right"]
+    nodes, tets = _drop_unused(nodes, tets)
+    nodes = _relocate(nodes, tets, region)
+    sets = named_sets(nodes, tets, region, grid=grid, masks=masks, x_mid=x_mid, size_mm=size_mm)
+    mesh = Mesh(nodes=nodes, tets=tets, region=region, **sets)
+    say("meshing: %d nodes, %d tets (%.1f s)", mesh.n_nodes, mesh.n_tets, time.perf_counter() - t0)
+    return mesh
