@@ -45,7 +45,7 @@ class Mesh:
     nodes : (N, 3) float64, mm
     tets : (M, 4) int64, node indices, positive orientation (det of edge matrix > 0)
     region : (M,) int32, codes from ``REGIONS``
-    node_sets : name -> (k,) int64 node indices, e.g. ``"fixed"``, ``"skin_superior"``, ``"fascia_inferior"``
+    node_sets : name -> (k,) int64 node indices, e.g. ``"fixed"``, ``"skin_superior"``
     face_sets : name -> (k, 3) int64 triangles, e.g. ``"skin"``, ``"interface"``; ordered so
         that the right-hand normal points out of the breast (skin) or from muscle to breast
         (interface)
