@@ -1,0 +1,164 @@
+"""Benchmark of the MRI stages on a 256^3 phantom (1 mm voxels, SNR 20, 30 % bias field,
+rigid motion up to 15 deg / 30 mm): segmentation and registration wall time, CPU time and
+peak memory with 2 threads, plus their accuracy against the truth.
+
+Usage::
+
+    .venv/bin/python bench/mri.py [--work DIR] [--threads 2]
+
+Each stage runs in its own process so that its peak memory (ru_maxrss) is its own. Prints a
+table and writes bench/results/mri.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+
+def _limit_threads(n: int) -> None:
+    for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+              "ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS"):
+        os.environ[k] = str(n)
+    import SimpleITK as sitk
+
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(n)
+
+
+def make_subject(work: Path) -> Path:
+    """256^3 phantom: the full-size anatomy in a 256 mm cube (air in front of the breasts)."""
+    from breastmodel.phantom import Anatomy, make_phantom
+
+    subject = work / "subject"
+    if not (subject / "subject.toml").exists():
+        anatomy = Anatomy().with_fov((-128.0, -261.0, -128.0), (128.0, -5.0, 128.0))
+        make_phantom(subject, seed=11, anatomy=anatomy, positions=("supine", "prone"),
+                     max_rotation_deg=15.0, max_translation_mm=30.0, progress=False)
+    return subject
+
+
+def stage_segment(work: Path) -> dict:
+    from imaging.io import read_volume, write_volume
+    from imaging.qa import dice
+    from imaging.segment import segment_volume
+
+    img = read_volume(work / "subject" / "supine.nii.gz")
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = segment_volume(img)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    write_volume(res.labels, work / "supine_labels.nii.gz")
+    d = dice(res.labels, read_volume(work / "subject_truth" / "supine_labels.nii.gz"))
+    return {"size": list(img.GetSize()), "wall_s": wall, "cpu_s": cpu, "dice": d}
+
+
+def stage_register(work: Path) -> dict:
+    import numpy as np
+    import SimpleITK as sitk
+
+    from breastmodel.commands.register import truth_transform
+    from imaging.fiducials import find_fiducials
+    from imaging.io import read_volume
+    from imaging.preprocess import preprocess
+    from registration.qa import rotation_error_deg, target_registration_error
+    from registration.rigid import chest_wall_mask, register_rigid
+
+    truth_dir = work / "subject_truth"
+    raw = {p: read_volume(work / "subject" / f"{p}.nii.gz") for p in ("supine", "prone")}
+    labels = read_volume(work / "supine_labels.nii.gz")  # from the segmentation stage
+    t0, c0 = time.perf_counter(), time.process_time()
+    img = {p: preprocess(v, denoise_iterations=0) for p, v in raw.items()}
+    fid = {p: find_fiducials(v) for p, v in img.items()}
+    res = register_rigid(img["supine"], img["prone"], fixed_points=fid["supine"],
+                         moving_points=fid["prone"], fixed_mask=chest_wall_mask(labels))
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    truth = truth_transform(truth_dir, "supine", "prone")
+    tl = read_volume(truth_dir / "supine_labels.nii.gz")
+    idx = np.argwhere(sitk.GetArrayViewFromImage(tl) == 2)[::97][:, ::-1]
+    pts = np.asarray([tl.TransformContinuousIndexToPhysicalPoint(tuple(map(float, i)))
+                      for i in idx])
+    tre = target_registration_error(res.transform, truth, pts)
+    markers = json.loads((truth_dir / "truth.json").read_text())["positions"]
+    fle = [float(np.linalg.norm(fid[p][k] - np.asarray(markers[p]["markers_mm"][k])))
+           for p in fid for k in fid[p]]
+    return {
+        "wall_s": wall, "cpu_s": cpu, "initialisation": res.initialisation,
+        "true_rotation_deg": rotation_error_deg(truth, sitk.Euler3DTransform()),
+        "true_translation_mm": float(np.linalg.norm(truth.TransformPoint((0.0, -100.0, 0.0))
+                                                    - np.array([0.0, -100.0, 0.0]))),
+        "tre_mean_mm": float(tre.mean()), "tre_max_mm": float(tre.max()),
+        "rotation_error_deg": rotation_error_deg(res.transform, truth),
+        "fiducial_localisation_error_mm": {"mean": float(np.mean(fle)), "max": float(np.max(fle))},
+    }
+
+
+def _run_stage(name: str, work: Path, threads: int) -> dict:
+    code = (
+        f"import json, resource, sys; sys.path.insert(0, {str(HERE)!r}); "
+        f"sys.path.insert(0, {str(ROOT)!r})\n"
+        f"import mri; mri._limit_threads({threads})\n"
+        "from pathlib import Path\n"
+        f"out = mri.stage_{name}(Path({str(work)!r}))\n"
+        "out['peak_rss_mb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024\n"
+        "print('RESULT', json.dumps(out))\n"
+    )
+    env = dict(os.environ, **{k: str(threads) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS",
+                                                        "OPENBLAS_NUM_THREADS")})
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True,
+                          text=True, check=False)
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+    if proc.returncode or not line:
+        raise RuntimeError(f"bench stage {name} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(line[-1][7:])
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_mri"))
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    sys.path.insert(0, str(ROOT))
+    make_subject(args.work)
+    load = os.getloadavg()
+    seg = _run_stage("segment", args.work, args.threads)
+    reg = _run_stage("register", args.work, args.threads)
+    result = {"volume": "256^3, 1 mm, SNR 20, bias 30 %", "threads": args.threads,
+              "cpus": os.cpu_count(), "load_average_at_start": load,
+              "segmentation": seg, "registration": reg}
+    rows = [
+        ("segmentation wall / CPU (s)", f"{seg['wall_s']:.1f} / {seg['cpu_s']:.1f}", "<= 60"),
+        ("segmentation peak memory (MB)", f"{seg['peak_rss_mb']:.0f}", "< 4096"),
+        ("Dice breast / muscle", f"{seg['dice']['breast']:.4f} / {seg['dice']['muscle']:.4f}",
+         ">= 0.97 / 0.95"),
+        ("registration wall / CPU (s)", f"{reg['wall_s']:.1f} / {reg['cpu_s']:.1f}", "<= 60"),
+        ("registration peak memory (MB)", f"{reg['peak_rss_mb']:.0f}", "< 4096"),
+        ("true motion (deg / mm)",
+         f"{reg['true_rotation_deg']:.1f} / {reg['true_translation_mm']:.1f}", "<= 15 / 30"),
+        ("TRE chest wall mean / max (mm)", f"{reg['tre_mean_mm']:.3f} / {reg['tre_max_mm']:.3f}",
+         "<= 0.5"),
+        ("rotation error (deg)", f"{reg['rotation_error_deg']:.3f}", "<= 0.3"),
+        ("fiducial localisation error mean / max (mm)",
+         f"{reg['fiducial_localisation_error_mm']['mean']:.3f} / "
+         f"{reg['fiducial_localisation_error_mm']['max']:.3f}", "<= 0.5"),
+    ]
+    w = max(len(r[0]) for r in rows)
+    print(f"MRI stages on a 256^3 phantom, {args.threads} threads, load average {load[0]:.1f}")
+    for name, val, target in rows:
+        print(f"  {name:<{w}}  {val:>18}   target {target}")
+    out = HERE / "results" / "mri.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,68 @@
+"""Fiducial detection, sub-voxel localisation and labelling on a phantom with known markers."""
+
+import json
+
+import numpy as np
+import pytest
+
+from breastmodel.phantom import make_phantom
+from imaging.fiducials import (
+    ANATOMICAL_LABELS,
+    anatomical_labels,
+    detect_markers,
+    find_fiducials,
+    label_by_reference,
+)
+from imaging.subject import read_subject
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory):
+    """Small 1 mm phantom (shared by the MRI tests of this session), 15 deg / 30 mm motions."""
+    root = tmp_path_factory.getbasetemp() / "mri_phantom_small"
+    subject = root / "subject"
+    if not (subject / "subject.toml").exists():
+        make_phantom(subject, seed=3, small=True, positions=("supine", "prone"),
+                     max_rotation_deg=15.0, max_translation_mm=30.0, progress=False)
+    truth = json.loads((root / "subject_truth" / "truth.json").read_text())
+    return read_subject(subject), truth
+
+
+@pytest.mark.parametrize("position", ["supine", "prone"])
+def test_markers_found_with_subvoxel_accuracy(phantom, position):
+    subject, truth = phantom
+    found = find_fiducials(subject.load(position))  # no CSV labels: anatomical labelling
+    exact = truth["positions"][position]["markers_mm"]
+    assert sorted(found) == sorted(ANATOMICAL_LABELS)
+    err = {k: float(np.linalg.norm(found[k] - np.asarray(exact[k]))) for k in exact}
+    # target: 0.5 mm at 1 mm voxels (half a voxel); the model fit does far better
+    assert max(err.values()) <= 0.5, err
+
+
+def test_labels_from_csv_match_by_nearest(phantom):
+    subject, truth = phantom
+    listed = subject.fiducials["supine"]
+    pts = detect_markers(subject.load("supine"), n_expected=4)
+    labelled = label_by_reference(pts[::-1], listed)
+    assert set(labelled) == set(listed)
+    for k, p in labelled.items():
+        assert np.linalg.norm(p - listed[k]) < 1.0
+
+
+def test_label_by_reference_drops_far_points():
+    ref = {"a": np.zeros(3), "b": np.array([50.0, 0, 0])}
+    out = label_by_reference(np.array([[0.5, 0, 0], [200.0, 0, 0]]), ref, max_distance_mm=10)
+    assert list(out) == ["a"]
+
+
+def test_anatomical_labels_follow_the_anatomy_under_rotation():
+    pts = {"sternum_upper": [0, -60, 40], "sternum_lower": [0, -60, -20],
+           "imf_left": [60, -50, -40], "imf_right": [-60, -50, -40]}
+    a = np.radians(15.0)
+    r = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    moved = {k: r @ np.asarray(v, float) + [5, 3, -7] for k, v in pts.items()}
+    order = np.random.default_rng(0).permutation(4)
+    names = list(moved)
+    out = anatomical_labels(np.asarray([moved[names[i]] for i in order]))
+    for k in pts:
+        assert np.allclose(out[k], moved[k])
