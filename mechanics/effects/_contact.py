@@ -1,0 +1,150 @@
+"""Geometry of node-to-surface contact: closest facets and the signed gap with derivatives."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices, skew(v) @ u = v x u."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack([np.stack([z, -v[..., 2], v[..., 1]], -1),
+                     np.stack([v[..., 2], z, -v[..., 0]], -1),
+                     np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def nodal_areas(X: np.ndarray, tri: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """(len(nodes),) tributary areas (one third of each adjacent triangle), mm^2."""
+    e1 = X[tri[:, 1]] - X[tri[:, 0]]
+    e2 = X[tri[:, 2]] - X[tri[:, 0]]
+    A = 0.5 * np.linalg.norm(np.cross(e1, e2), axis=1)
+    w = np.bincount(tri.ravel(), weights=np.repeat(A / 3.0, 3), minlength=len(X))
+    return w[nodes]
+
+
+def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8):
+    """Closest triangle of a surface to each point.
+
+    Parameters
+    ----------
+    p : (S, 3) points, mm
+    x : (N, 3) node positions, mm
+    tri : (T, 3) surface triangles
+    k : candidate triangles per point (nearest centroids)
+
+    Returns
+    -------
+    facet : (S,) index into ``tri``
+    bary : (S, 3) barycentric coordinates of the closest point (inside or on the edges)
+    dist : (S,) distance, mm
+    """
+    xt = x[tri]  # (T, 3, 3)
+    k = min(k, len(tri))
+    _, cand = cKDTree(xt.mean(axis=1)).query(p, k=k)
+    cand = np.asarray(cand).reshape(len(p), k)
+    a, b, c = xt[cand, 0], xt[cand, 1], xt[cand, 2]  # (S, k, 3)
+    q = p[:, None, :]
+    v0, v1, v2 = b - a, c - a, q - a
+    d00 = np.einsum("ski,ski->sk", v0, v0)
+    d01 = np.einsum("ski,ski->sk", v0, v1)
+    d11 = np.einsum("ski,ski->sk", v1, v1)
+    d20 = np.einsum("ski,ski->sk", v2, v0)
+    d21 = np.einsum("ski,ski->sk", v2, v1)
+    den = d00 * d11 - d01 * d01
+    bv = (d11 * d20 - d01 * d21) / den
+    bw = (d00 * d21 - d01 * d20) / den
+    bu = 1.0 - bv - bw
+    inside = (bu >= 0) & (bv >= 0) & (bw >= 0)
+    proj = a + bv[..., None] * v0 + bw[..., None] * v1
+    d_plane = np.where(inside, np.linalg.norm(q - proj, axis=-1), np.inf)
+    cands = [(d_plane, np.stack([bu, bv, bw], -1))]
+    for i, j in ((0, 1), (1, 2), (2, 0)):
+        s, e = xt[cand, i], xt[cand, j]
+        t = np.clip(np.einsum("ski,ski->sk", q - s, e - s)
+                    / np.einsum("ski,ski->sk", e - s, e - s), 0.0, 1.0)
+        dist = np.linalg.norm(q - (s + t[..., None] * (e - s)), axis=-1)
+        bary = np.zeros(t.shape + (3,))
+        bary[..., i] = 1.0 - t
+        bary[..., j] = t
+        cands.append((dist, bary))
+    dists = np.stack([d for d, _ in cands], axis=-1)  # (S, k, 4)
+    barys = np.stack([b for _, b in cands], axis=-2)  # (S, k, 4, 3)
+    flat = dists.reshape(len(p), -1)
+    best = np.argmin(flat, axis=1)
+    rows = np.arange(len(p))
+    kk, mm = np.divmod(best, 4)
+    return cand[rows, kk], barys[rows, kk, mm], flat[rows, best]
+
+
+def facet_normals(x: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(T, 3) unit normals (right-hand rule)."""
+    n = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
+    return n / np.linalg.norm(n, axis=1)[:, None]
+
+
+# Map from q = (x_s, x1, x2, x3) (12) to (d, e1, e2) = (x_s - x1, x2 - x1, x3 - x1) (9).
+_L = np.zeros((9, 12))
+for _blk, (_plus, _minus) in enumerate(((0, 1), (2, 1), (3, 1))):
+    _L[3 * _blk:3 * _blk + 3, 3 * _plus:3 * _plus + 3] = np.eye(3)
+    _L[3 * _blk:3 * _blk + 3, 3 * _minus:3 * _minus + 3] -= np.eye(3)
+
+
+def signed_gap(xs: np.ndarray, xa: np.ndarray, *, hessian: bool = True):
+    """Signed distance of points to the planes of triangles, with derivatives.
+
+    Parameters
+    ----------
+    xs : (S, 3) points, mm
+    xa : (S, 3, 3) triangle vertices, mm (normal by the right-hand rule)
+
+    Returns
+    -------
+    g : (S,) signed distance (positive on the normal's side), mm
+    dg : (S, 12) derivative with respect to (x_s, x1, x2, x3)
+    d2g : (S, 12, 12) second derivative, 1/mm (None without ``hessian``)
+    """
+    d = xs - xa[:, 0]
+    e1 = xa[:, 1] - xa[:, 0]
+    e2 = xa[:, 2] - xa[:, 0]
+    a = np.cross(e1, e2)
+    A = np.linalg.norm(a, axis=1)
+    ah = a / A[:, None]
+    vol = np.einsum("si,si->s", d, a)
+    g = vol / A
+    dvol = np.concatenate([a, np.cross(e2, d), np.cross(d, e1)], axis=1)  # (S, 9)
+    dA = np.concatenate([np.zeros_like(a), np.cross(e2, ah), np.cross(ah, e1)], axis=1)
+    dg9 = dvol / A[:, None] - (vol / A**2)[:, None] * dA
+    dg = dg9 @ _L
+    if not hessian:
+        return g, dg, None
+    S = len(xs)
+    Hv = np.zeros((S, 9, 9))
+    Hv[:, 0:3, 3:6] = -skew(e2)
+    Hv[:, 0:3, 6:9] = skew(e1)
+    Hv[:, 3:6, 6:9] = -skew(d)
+    Hv = Hv + Hv.transpose(0, 2, 1)
+    Jc = np.concatenate([-skew(e2), skew(e1)], axis=2)  # (S, 3, 6) = da/d(e1, e2)
+    Pn = np.eye(3) - np.einsum("si,sj->sij", ah, ah)
+    HA6 = Jc.transpose(0, 2, 1) @ Pn @ Jc / A[:, None, None]
+    HA6[:, 0:3, 3:6] += -skew(ah)
+    HA6[:, 3:6, 0:3] += skew(ah)
+    HA = np.zeros((S, 9, 9))
+    HA[:, 3:, 3:] = HA6
+    outer = np.einsum("si,sj->sij", dvol, dA)
+    H9 = (Hv / A[:, None, None] - (outer + outer.transpose(0, 2, 1)) / (A**2)[:, None, None]
+          + (2.0 * vol / A**3)[:, None, None] * np.einsum("si,sj->sij", dA, dA)
+          - (vol / A**2)[:, None, None] * HA)
+    return g, dg, _L.T @ H9 @ _L
+
+
+def coo_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray):
+    """COO triplets of per-contact blocks K (S, r, c) at dofs (S, r) x (S, c)."""
+    r = np.repeat(row_dofs[:, :, None], col_dofs.shape[1], axis=2)
+    c = np.repeat(col_dofs[:, None, :], row_dofs.shape[1], axis=1)
+    return r.ravel(), c.ravel(), K.ravel()
+
+
+def node_dofs(nodes: np.ndarray) -> np.ndarray:
+    """(S, k) nodes -> (S, 3k) dofs."""
+    return (3 * nodes[:, :, None] + np.arange(3)).reshape(len(nodes), -1)

@@ -1,0 +1,177 @@
+"""Hyperelastic membrane triangles sharing nodes with the solid (skin, fascia).
+
+Each triangle of a face set is a thin incompressible sheet of reference thickness H (mm).
+With the in-plane right Cauchy-Green tensor C (2x2) and the thickness stretch fixed by
+incompressibility (lambda_3^2 = 1 / det C), the first invariant is I1 = tr C + 1 / det C and
+
+    Neo-Hookean: W = mu/2 (I1 - 3)
+    Gent:        W = -mu Jm/2 ln(1 - (I1 - 3)/Jm)
+
+per unit reference volume (kPa), mu = E / (2 (1 + nu)) with the project's nu = 0.49.
+The energy of a triangle is H A0 W (A0 reference area, mm^2), so forces are mN.
+
+This module holds the kernel and the shared base class; ``skin`` and ``fascia`` register it
+on their face sets.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mechanics.effects.base import Contribution, Effect, Param
+
+#: Poisson ratio used to turn E into the shear modulus, as in the paper's bulk law.
+NU_MEMBRANE = 0.49
+LAWS = ("neo_hookean", "gent")
+
+
+def reference_triangles(X: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shape-function gradients and areas of triangles in their own plane.
+
+    Parameters
+    ----------
+    X : (N, 3) reference positions, mm
+    tri : (T, 3) node indices
+
+    Returns
+    -------
+    G : (T, 3, 2) gradients of the three linear shape functions along two orthonormal
+        in-plane axes, 1/mm (F = x^T G is the 3x2 deformation gradient)
+    A0 : (T,) reference areas, mm^2
+    """
+    Xe = X[tri]
+    e1 = Xe[:, 1] - Xe[:, 0]
+    e2 = Xe[:, 2] - Xe[:, 0]
+    n = np.cross(e1, e2)
+    twice = np.linalg.norm(n, axis=1)
+    if np.any(twice <= 0.0):
+        raise ValueError("membrane: degenerate (zero-area) triangle in the face set")
+    t1 = e1 / np.linalg.norm(e1, axis=1)[:, None]
+    t2 = np.cross(n / twice[:, None], t1)
+    D = np.stack([np.stack([np.einsum("ti,ti->t", e, t) for t in (t1, t2)], axis=1)
+                  for e in (e1, e2)], axis=2)  # (T, 2, 2): columns = local edge coordinates
+    Dinv = np.linalg.inv(D)
+    ref = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
+    G = np.einsum("ab,tbc->tac", ref, Dinv)
+    return G, 0.5 * twice
+
+
+def _law_derivatives(I1: np.ndarray, mu: float, law: str, Jm: float):
+    """W(I1), dW/dI1, d2W/dI1^2 for the membrane law (kPa)."""
+    if law == "neo_hookean":
+        return 0.5 * mu * (I1 - 3.0), np.full_like(I1, 0.5 * mu), np.zeros_like(I1)
+    s = 1.0 - (I1 - 3.0) / Jm
+    s = np.where(s > 0.0, s, np.nan)  # beyond Gent's limit stretch: undefined
+    return -0.5 * mu * Jm * np.log(s), 0.5 * mu / s, 0.5 * mu / (Jm * s * s)
+
+
+def membrane_energy_terms(x: np.ndarray, tri: np.ndarray, G: np.ndarray, A0: np.ndarray,
+                          H: float | np.ndarray, E: float, *, law: str = "neo_hookean",
+                          Jm: float = np.inf, tangent: bool = True):
+    """Energy, nodal forces and element stiffness of membrane triangles.
+
+    Parameters
+    ----------
+    x : (N, 3) current positions, mm
+    tri, G, A0 : from :func:`reference_triangles`
+    H : thickness, mm (scalar or (T,))
+    E : Young's modulus, kPa
+    law : "neo_hookean" or "gent" (with ``Jm`` = limit of I1 - 3)
+
+    Returns
+    -------
+    energy : (T,) mN mm
+    fe : (T, 3, 3) internal force on each triangle node, mN
+    Ke : (T, 9, 9) stiffness d fe / d x in local dof order 3 * a + i, mN/mm (None without
+        ``tangent``)
+    """
+    mu = E / (2.0 * (1.0 + NU_MEMBRANE))
+    F = np.einsum("tai,taA->tiA", x[tri], G)  # (T, 3, 2)
+    C = np.einsum("tiA,tiB->tAB", F, F)
+    c = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
+    if np.any(c <= 0.0):
+        c = np.where(c > 0.0, c, np.nan)  # collapsed triangle: undefined, solver cuts back
+    Ci = np.empty_like(C)
+    Ci[:, 0, 0], Ci[:, 1, 1] = C[:, 1, 1] / c, C[:, 0, 0] / c
+    Ci[:, 0, 1] = Ci[:, 1, 0] = -C[:, 0, 1] / c
+    I1 = C[:, 0, 0] + C[:, 1, 1] + 1.0 / c
+    W, d1, d2 = _law_derivatives(I1, mu, law, Jm)
+    vol = np.broadcast_to(np.asarray(H, float), A0.shape) * A0  # mm^3
+    eye = np.eye(2)
+    dI = eye[None] - Ci / c[:, None, None]  # dI1/dC (symmetric)
+    S = d1[:, None, None] * dI  # dW/dC
+    # dE/dx_a = 2 V F S G_a
+    fe = 2.0 * vol[:, None, None] * (G @ S @ F.transpose(0, 2, 1))
+    if not tangent:
+        return vol * W, fe, None
+    # d2I1/dC dC, minor and major symmetric
+    d2I = (0.5 * (np.einsum("tAC,tBD->tABCD", Ci, Ci) + np.einsum("tAD,tBC->tABCD", Ci, Ci))
+           + np.einsum("tAB,tCD->tABCD", Ci, Ci)) / c[:, None, None, None, None]
+    K4 = (d1[:, None, None, None, None] * d2I
+          + d2[:, None, None, None, None] * np.einsum("tAB,tCD->tABCD", dI, dI))
+    # geometric: 2 V (G_a S G_b) delta_ij; material: 4 V K_ABCD G_aA F_iB G_bC F_jD
+    geo = 2.0 * (G @ S @ G.transpose(0, 2, 1))
+    T = len(tri)
+    FG = np.einsum("taA,tiB->taiAB", G, F).reshape(T, 9, 4)  # G_aA F_iB
+    mat = 4.0 * FG @ K4.reshape(T, 4, 4) @ FG.transpose(0, 2, 1)
+    Ke = mat.reshape(T, 3, 3, 3, 3) + geo[:, :, None, :, None] * np.eye(3)[None, None, :, None, :]
+    Ke = vol[:, None, None, None, None] * Ke
+    return vol * W, fe, Ke.reshape(T, 9, 9)
+
+
+def scatter(n_nodes: int, conn: np.ndarray, fe: np.ndarray, Ke: np.ndarray | None
+            ) -> Contribution:
+    """Assemble element forces (T, k, 3) and stiffness (T, 3k, 3k) into a Contribution."""
+    k = conn.shape[1]
+    force = np.zeros((n_nodes, 3))
+    np.add.at(force, conn.ravel(), fe.reshape(-1, 3))
+    if Ke is None:
+        return Contribution(force)
+    dofs = (3 * conn[:, :, None] + np.arange(3)).reshape(len(conn), 3 * k)
+    rows = np.repeat(dofs, 3 * k, axis=1).ravel()
+    cols = np.tile(dofs, (1, 3 * k)).ravel()
+    return Contribution(force, rows, cols, Ke.ravel())
+
+
+class MembraneEffect(Effect):
+    """Base of the membrane effects: a face set, a thickness, a modulus and a law.
+
+    Subclasses set ``name``, ``face_set``, ``params`` (``E`` kPa, ``thickness`` mm, ``Jm``).
+    Option ``law``: "neo_hookean" (default) or "gent".
+    """
+
+    face_set: str = ""
+
+    def __init__(self, mesh, **values):
+        super().__init__(mesh, **values)
+        opts = dict(self.options)
+        self.law = str(opts.pop("law", "neo_hookean"))
+        if self.law not in LAWS:
+            raise ValueError(f"effect {self.name!r}: law must be one of {LAWS}, got {self.law!r}")
+        if opts:
+            raise ValueError(f"effect {self.name!r}: unknown option(s) {sorted(opts)}")
+        self.tri = np.asarray(mesh.face_sets[self.face_set], np.int64)
+        self._ref = None
+
+    def _reference(self, X):
+        if self._ref is None or self._ref[0] is not X:
+            self._ref = (X, *reference_triangles(X, self.tri))
+        return self._ref[1], self._ref[2]
+
+    def energy(self, X: np.ndarray, x: np.ndarray) -> float:
+        """Stored energy of the membrane, mN mm."""
+        G, A0 = self._reference(X)
+        W, _, _ = membrane_energy_terms(x, self.tri, G, A0, self.values["thickness"],
+                                        self.values["E"], law=self.law, Jm=self.values["Jm"],
+                                        tangent=False)
+        return float(W.sum())
+
+    def contribute(self, X, x, load):
+        G, A0 = self._reference(X)
+        _, fe, Ke = membrane_energy_terms(x, self.tri, G, A0, self.values["thickness"],
+                                          self.values["E"], law=self.law, Jm=self.values["Jm"])
+        return scatter(len(x), self.tri, fe, Ke)
+
+
+#: Locking parameter of the Gent membrane (used only with ``law="gent"``).
+JM_MEMBRANE = Param("Jm", "-", 10.0, 0.05, 1e4, "Gent limit of I1 - 3 (law='gent' only)")

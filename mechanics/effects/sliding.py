@@ -1,0 +1,307 @@
+"""Sliding breast-muscle contact: no separation, Coulomb friction, large sliding.
+
+Mesh layout (see :func:`mechanics.effects._interface.split_interface`): the interface nodes
+are duplicated; face set ``interface`` holds the breast-side triangles (slave surface) and
+``interface_muscle`` the muscle-side triangles (master surface), both oriented with the
+normal from muscle into breast, on disjoint node sets. The two sides may be non-matching.
+
+Contact points: 3 quadrature points per slave triangle (option ``points``: 1, 3, 7, or 0 for
+one point per slave node, classic node-to-surface). Each point carries the reference area
+w_p it stands for (mm^2).
+
+Normal (penalty or augmented Lagrangian): every point is paired with its closest master
+triangle, searched again at every evaluation (large sliding); its gap g is the signed
+distance to that triangle's plane. The energy w_p (eps_N g^2 / 2 + lambda g) acts in both
+directions, so the interface transmits pressure and tension and never separates; the
+tangent is exact (gap Hessian included).
+
+Tangential (Coulomb, k = ``friction``): at the start of each load step every point keeps an
+anchor, a material point of the master surface (facet, barycentric coordinates), and that
+facet's normal n0. The elastic slip s = (I - n0 n0^T)(x_p - x_anchor) gives the trial force
+t = eps_T w_p s, capped at k times the compressive normal force (zero in tension):
+|t| <= k max(-f_N, 0) (return mapping). At the next step a slipping point's anchor moves so
+that the carried force sits on the cone. The tangent is exact for the frozen anchor and n0;
+it is unsymmetric while slipping (the effect then sets ``symmetric = False``).
+State (anchors, multipliers) is reset when a step starts from x == X (a new solve).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mechanics.effects._contact import (
+    closest_facets,
+    coo_blocks,
+    facet_normals,
+    nodal_areas,
+    node_dofs,
+    signed_gap,
+)
+from mechanics.effects.base import Contribution, Effect, Param, register_effect
+
+METHODS = ("penalty", "augmented")
+
+#: Quadrature rules on the slave triangles: barycentric points and weights (sum 1).
+_A1, _B1 = 0.0597158717897698, 0.4701420641051151
+_A2, _B2 = 0.7974269853530873, 0.1012865073234563
+RULES = {
+    1: (np.full((1, 3), 1 / 3), np.ones(1)),
+    3: (np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]]),
+        np.full(3, 1 / 3)),
+    7: (np.array([[1 / 3, 1 / 3, 1 / 3], [_A1, _B1, _B1], [_B1, _A1, _B1], [_B1, _B1, _A1],
+                  [_A2, _B2, _B2], [_B2, _A2, _B2], [_B2, _B2, _A2]]),
+        np.array([0.225] + [0.1323941527885062] * 3 + [0.1259391805448271] * 3)),
+}
+
+
+def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
+    """Magnitude of the friction force from the trial force r and the bound b (mN).
+
+    sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: a smooth minimum,
+    phi = (r - h + b sqrt(1 + sigma^2)) / 2 with h = sqrt((r - b)^2 + (sigma b)^2), which
+    is 0 at r = 0, tends to min(r, b) away from r = b and rounds the stick-slip corner over
+    a width ~sigma b (Newton then sees a smooth law).
+
+    Returns phi, d phi / dr, phi / r (its limit at r = 0) and d phi / db.
+    """
+    if sigma == 0.0:
+        stick = r <= b
+        phi = np.minimum(r, b)
+        return (phi, stick.astype(float),
+                np.where(stick, 1.0, b / np.where(r > 0, r, 1.0)), (~stick).astype(float))
+    c = np.sqrt(1.0 + sigma**2)
+    h = np.sqrt((r - b) ** 2 + (sigma * b) ** 2)
+    hs = np.where(h > 0, h, 1.0)
+    phi = 0.5 * (r - h + b * c)
+    phi_r = np.where(h > 0, 0.5 * (1.0 - (r - b) / hs), 0.0)
+    phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), 0.5 * (1.0 + 1.0 / c))
+    phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
+    phi_b = np.where(h > 0, 0.5 * (c - (sigma**2 * b - (r - b)) / hs), 0.0)
+    return phi, phi_r, phi_over_r, phi_b
+
+
+class _InterfaceContact(Effect):
+    """Shared set-up of the split-interface effects: slave faces, master faces."""
+
+    requires = ("face_sets:interface", "face_sets:interface_muscle")
+
+    def _setup(self):
+        mesh = self.mesh
+        self.slave_faces = np.asarray(mesh.face_sets["interface"], np.int64)
+        self.master = np.asarray(mesh.face_sets["interface_muscle"], np.int64)
+        self.slaves = np.unique(self.slave_faces)
+        if np.intersect1d(self.slaves, np.unique(self.master)).size:
+            raise ValueError(
+                f"effect {self.name!r}: the 'interface' and 'interface_muscle' face sets share "
+                "nodes; split the interface first (mechanics.effects._interface."
+                "split_interface)")
+
+
+@register_effect
+class Sliding(_InterfaceContact):
+    """No-separation breast-muscle contact with Coulomb friction (see the module docstring).
+
+    Options: ``method`` "penalty" (default) or "augmented" (the normal multipliers are
+    updated, Uzawa-style, at the start of every load step); ``points`` 0 (node-to-surface:
+    one contact point per slave node) or 1, 3, 7 quadrature points per slave triangle
+    (default 3: Gauss-point-to-surface, which passes the non-matching patch test);
+    ``search_candidates`` (int, 8).
+    """
+
+    name = "sliding"
+    doc = "breast slides on the muscle with Coulomb friction and never separates from it"
+    params = (
+        Param("friction", "-", 0.1, 0.0, 2.0, "Coulomb friction coefficient k"),
+        Param("penalty", "kPa/mm", 100.0, 1e-3, 1e7, "normal penalty stiffness per area"),
+        Param("tangential_penalty", "kPa/mm", 100.0, 1e-3, 1e7,
+              "tangential (stick) penalty stiffness per area"),
+        Param("smoothing", "-", 0.0, 0.0, 1.0,
+              "width of the rounded stick-slip transition, fraction of the friction bound"),
+    )
+
+    def __init__(self, mesh, **values):
+        super().__init__(mesh, **values)
+        opts = dict(self.options)
+        self.method = str(opts.pop("method", "penalty"))
+        self.k_search = int(opts.pop("search_candidates", 8))
+        self.points = int(opts.pop("points", 3))
+        if opts:
+            raise ValueError(f"effect 'sliding': unknown option(s) {sorted(opts)}")
+        if self.method not in METHODS:
+            raise ValueError(f"effect 'sliding': method must be one of {METHODS}")
+        if self.points not in (0, *RULES):
+            raise ValueError(f"effect 'sliding': points must be 0, 1, 3 or 7, got {self.points}")
+        self._setup()
+        if self.points == 0:
+            self.sconn = self.slaves[:, None]
+            self.sN = np.ones((len(self.slaves), 1))
+        else:
+            eta, _ = RULES[self.points]
+            self.sconn = np.repeat(self.slave_faces, len(eta), axis=0)
+            self.sN = np.tile(eta, (len(self.slave_faces), 1))
+        P, m = self.sN.shape
+        # C maps the local dofs (m slave nodes, 3 master nodes) to (x_p, x1, x2, x3).
+        C = np.zeros((P, 12, 3 * m + 9))
+        for b in range(m):
+            C[:, 0:3, 3 * b:3 * b + 3] = self.sN[:, b, None, None] * np.eye(3)
+        C[:, 3:, 3 * m:] = np.eye(9)
+        self._C = C
+        self._w = None
+        self.symmetric = self.values["friction"] == 0.0
+        self.multiplier = np.zeros(P)  # mN, augmented Lagrangian normal force
+        self.anchor_facet: np.ndarray | None = None
+        self.anchor_bary = np.zeros((P, 3))
+        self.anchor_normal = np.zeros((P, 3))
+
+    def weights(self, X: np.ndarray) -> np.ndarray:
+        """(P,) reference area of each contact point, mm^2."""
+        if self._w is None or self._w[0] is not X:
+            if self.points == 0:
+                w = nodal_areas(X, self.slave_faces, self.slaves)
+            else:
+                Xt = X[self.slave_faces]
+                A = 0.5 * np.linalg.norm(np.cross(Xt[:, 1] - Xt[:, 0], Xt[:, 2] - Xt[:, 0]),
+                                         axis=1)
+                w = np.outer(A, RULES[self.points][1]).ravel()
+            self._w = (X, w)
+        return self._w[1]
+
+    def contact_points(self, x: np.ndarray) -> np.ndarray:
+        """(P, 3) current positions of the contact points on the breast side, mm."""
+        return np.einsum("pm,pmi->pi", self.sN, x[self.sconn])
+
+    # -- normal part -------------------------------------------------------------------
+    def _normal(self, X, x, *, hessian=True):
+        xp = self.contact_points(x)
+        facet, _, _ = closest_facets(xp, x, self.master, k=self.k_search)
+        nodes = np.concatenate([self.sconn, self.master[facet]], axis=1)
+        g, dg, d2g = signed_gap(xp, x[self.master[facet]], hessian=hessian)
+        w = self.weights(X)
+        fN = self.values["penalty"] * w * g + self.multiplier  # mN, < 0 in compression
+        return nodes, g, dg, d2g, fN, w
+
+    def gaps(self, X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(P,) signed normal gaps at the contact points, mm (positive: separated)."""
+        return self._normal(X, x, hessian=False)[1]
+
+    def pressure(self, X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(P,) contact pressure at the contact points, kPa (positive in compression)."""
+        _, _, _, _, fN, w = self._normal(X, x, hessian=False)
+        return -fN / w
+
+    def nodal_pressure(self, X: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(S,) contact pressure lumped to the slave nodes ``self.slaves``, kPa: the normal
+        contact force each node receives over its tributary area (compression positive)."""
+        fN = self._normal(X, x, hessian=False)[4]
+        f = np.bincount(self.sconn.ravel(), weights=(self.sN * -fN[:, None]).ravel(),
+                        minlength=len(x))
+        return f[self.slaves] / nodal_areas(X, self.slave_faces, self.slaves)
+
+    # -- friction anchors --------------------------------------------------------------
+    def _trial(self, X, x):
+        """Elastic slip s (P, 3) mm from the anchors, trial force (P, 3) mN, anchor nodes."""
+        nodes = self.master[self.anchor_facet]
+        xa = np.einsum("sa,sai->si", self.anchor_bary, x[nodes])
+        n0 = self.anchor_normal
+        r = self.contact_points(x) - xa
+        s = r - np.einsum("si,si->s", r, n0)[:, None] * n0
+        return s, self.values["tangential_penalty"] * self.weights(X)[:, None] * s, nodes
+
+    def tangential_state(self, X: np.ndarray, x: np.ndarray):
+        """Friction state of the contact points at x against the current anchors.
+
+        Returns ``slip`` (P, 3) mm (elastic slip since the last anchor update), ``force``
+        (P, 3) mN (tangential force carried) and ``stick`` (P,) bool.
+        """
+        if self.anchor_facet is None:
+            self._set_anchors(x, self.contact_points(x))
+        s, t, _ = self._trial(X, x)
+        bound = self.values["friction"] * np.maximum(-self._normal(X, x, hessian=False)[4], 0.0)
+        r = np.linalg.norm(t, axis=1)
+        _, _, phi_over_r, _ = friction_law(r, bound, self.values["smoothing"])
+        return s, t * phi_over_r[:, None], r <= bound
+
+    def _set_anchors(self, x, points):
+        facet, bary, _ = closest_facets(points, x, self.master, k=self.k_search)
+        self.anchor_facet, self.anchor_bary = facet, bary
+        self.anchor_normal = facet_normals(x, self.master)[facet]
+
+    def begin_step(self, X, x):
+        if np.array_equal(x, X):  # first step of a new solve: forget the last solve's state
+            self.reset()
+        if self.method == "augmented":
+            self.multiplier = self._normal(X, x, hessian=False)[4].copy()
+        if self.values["friction"] == 0.0:
+            return
+        xp = self.contact_points(x)
+        if self.anchor_facet is None:
+            self._set_anchors(x, xp)
+            return
+        fN = self._normal(X, x, hessian=False)[4]
+        s, t, _ = self._trial(X, x)
+        bound = self.values["friction"] * np.maximum(-fN, 0.0)
+        r = np.linalg.norm(t, axis=1)
+        _, _, phi_over_r, _ = friction_law(r, bound, self.values["smoothing"])
+        slip = phi_over_r < 1.0 - 1e-12
+        if np.any(slip):
+            # Move the anchor so that the elastic slip carries the current friction force
+            # (the rest of the slip is permanent): |s_new| = phi / eps_T w.
+            old = self.anchor_facet.copy(), self.anchor_bary.copy()
+            self._set_anchors(x, xp - phi_over_r[:, None] * s)
+            self.anchor_facet = np.where(slip, self.anchor_facet, old[0])
+            self.anchor_bary = np.where(slip[:, None], self.anchor_bary, old[1])
+        # Freeze the normal of every anchor facet at the converged configuration.
+        self.anchor_normal = facet_normals(x, self.master)[self.anchor_facet]
+
+    def reset(self) -> None:
+        """Forget friction anchors and multipliers (start of a new solve from scratch)."""
+        self.anchor_facet = None
+        self.multiplier = np.zeros(len(self.sN))
+
+    # -- residual and tangent ----------------------------------------------------------
+    def contribute(self, X, x, load):
+        n = len(x)
+        C = self._C
+        nodes, g, dg, d2g, fN, w = self._normal(X, x)
+        eps = self.values["penalty"]
+        dgf = (dg[:, None, :] @ C)[:, 0]  # gradient on the local dofs
+        K = (eps * w)[:, None, None] * np.einsum("pi,pj->pij", dgf, dgf) \
+            + fN[:, None, None] * (C.transpose(0, 2, 1) @ d2g @ C)
+        dofN = node_dofs(nodes)
+        force = np.zeros(3 * n)
+        np.add.at(force, dofN.ravel(), (fN[:, None] * dgf).ravel())
+        blocks = [coo_blocks(dofN, dofN, K)]
+        k_fric = self.values["friction"]
+        if k_fric > 0.0:
+            if self.anchor_facet is None:  # contribute() before any begin_step
+                self._set_anchors(x, self.contact_points(x))
+            s, t, mnodes = self._trial(X, x)
+            xi = self.anchor_bary
+            P = len(s)
+            B = np.zeros((P, 3, 12))
+            B[:, :, 0:3] = np.eye(3)
+            for a in range(3):
+                B[:, :, 3 + 3 * a:6 + 3 * a] = -xi[:, a, None, None] * np.eye(3)
+            B = B @ C  # d(x_p - x_anchor)/d(local dofs)
+            n0 = self.anchor_normal
+            P0 = np.eye(3) - np.einsum("si,sj->sij", n0, n0)
+            epsT = self.values["tangential_penalty"] * w
+            dtt = epsT[:, None, None] * (P0 @ B)  # d t_trial / dq
+            bound = k_fric * np.maximum(-fN, 0.0)
+            r = np.linalg.norm(t, axis=1)
+            sh = t / np.where(r > 0, r, 1.0)[:, None]
+            phi, phi_r, phi_over_r, phi_b = friction_law(r, bound, self.values["smoothing"])
+            dofT = node_dofs(np.concatenate([self.sconn, mnodes], axis=1))
+            force_t = phi[:, None] * sh
+            np.add.at(force, dofT.ravel(), np.einsum("sij,si->sj", B, force_t).ravel())
+            ss = np.einsum("si,sj->sij", sh, sh)
+            Dt = phi_r[:, None, None] * ss + phi_over_r[:, None, None] * (np.eye(3) - ss)
+            blocks.append(coo_blocks(dofT, dofT, B.transpose(0, 2, 1) @ (Dt @ dtt)))
+            comp = (fN < 0.0) & (phi_b != 0.0)
+            if np.any(comp):
+                db = -k_fric * (eps * w)[:, None] * dgf  # d bound / dq on the normal dofs
+                dt_n = phi_b[:, None, None] * np.einsum("si,sj->sij", sh, db)
+                K_tn = B[comp].transpose(0, 2, 1) @ dt_n[comp]
+                blocks.append(coo_blocks(dofT[comp], dofN[comp], K_tn))
+        rows, cols, vals = (np.concatenate(parts) for parts in zip(*blocks, strict=True))
+        return Contribution(force.reshape(n, 3), rows, cols, vals)

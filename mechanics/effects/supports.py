@@ -1,0 +1,52 @@
+"""The paper's Dirichlet supports: posterior muscle fixed, fascia ends in z, skin ends in y."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mechanics.effects.base import Constraint, Effect, register_effect
+
+
+@register_effect
+class Supports(Effect):
+    """Posterior muscle nodes (node set ``fixed``) fixed in x, y, z; the superior and inferior
+    ends of the fascia (``fascia_superior``, ``fascia_inferior``) fixed in one component
+    (default 2, z: superior-inferior); those of the skin (``skin_superior``,
+    ``skin_inferior``) in another (default 1, y: anterior-posterior).
+
+    Options: ``muscle``, ``fascia_ends``, ``skin_ends`` (bool, default True) switch each
+    group; ``fascia_component``, ``skin_component`` (0, 1 or 2).
+    """
+
+    name = "supports"
+    doc = "paper's Dirichlet supports: posterior muscle fixed, fascia ends in z, skin ends in y"
+    requires = ()
+
+    def __init__(self, mesh, **values):
+        super().__init__(mesh, **values)
+        opts = dict(self.options)
+        use = {k: bool(opts.pop(k, True)) for k in ("muscle", "fascia_ends", "skin_ends")}
+        comp = {k: int(opts.pop(k, d)) for k, d in (("fascia_component", 2),
+                                                    ("skin_component", 1))}
+        if opts:
+            raise ValueError(f"effect 'supports': unknown option(s) {sorted(opts)}")
+        if any(c not in (0, 1, 2) for c in comp.values()):
+            raise ValueError(f"effect 'supports': components must be 0, 1 or 2, got {comp}")
+        wanted = []
+        if use["muscle"]:
+            wanted.append((("fixed",), (0, 1, 2)))
+        if use["fascia_ends"]:
+            wanted.append((("fascia_superior", "fascia_inferior"), (comp["fascia_component"],)))
+        if use["skin_ends"]:
+            wanted.append((("skin_superior", "skin_inferior"), (comp["skin_component"],)))
+        self._constraints = []
+        for names, comps in wanted:
+            missing = [n for n in names if n not in mesh.node_sets]
+            if missing:
+                raise ValueError(f"effect 'supports': the mesh has no node set(s) {missing} "
+                                 f"(has {sorted(mesh.node_sets)})")
+            nodes = np.unique(np.concatenate([mesh.node_sets[n] for n in names]))
+            self._constraints.append(Constraint(nodes, comps))
+
+    def constraints(self):
+        return list(self._constraints)

@@ -1,0 +1,63 @@
+"""Tied interface: the breast is bonded to the muscle (no sliding, no separation).
+
+On a split interface (see :mod:`mechanics.effects.sliding`) every breast-side node is tied by
+a stiff penalty spring, w_s eps |x_s - x_m|^2 / 2, to the material point x_m of the muscle
+surface that it touched in the stress-free configuration (fixed facet and barycentric
+coordinates: exact, symmetric tangent). This is the over-constrained "Dirichlet chest wall"
+case of the literature. On a conforming mesh the interface is bonded already and the effect
+adds nothing.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mechanics.effects._contact import closest_facets, coo_blocks, nodal_areas, node_dofs
+from mechanics.effects.base import Contribution, Effect, Param, register_effect
+
+
+@register_effect
+class Tied(Effect):
+    """Bonded breast-muscle interface (alternative to ``sliding``)."""
+
+    name = "tied"
+    doc = "breast bonded to the muscle at the interface (no sliding)"
+    requires = ("face_sets:interface",)
+    params = (Param("penalty", "kPa/mm", 1000.0, 1e-3, 1e7, "tie stiffness per area"),)
+
+    def __init__(self, mesh, **values):
+        super().__init__(mesh, **values)
+        if self.options:
+            raise ValueError(f"effect 'tied': unknown option(s) {sorted(self.options)}")
+        self.split = "interface_muscle" in mesh.face_sets
+        if self.split:
+            self.slave_faces = np.asarray(mesh.face_sets["interface"], np.int64)
+            self.master = np.asarray(mesh.face_sets["interface_muscle"], np.int64)
+            self.slaves = np.unique(self.slave_faces)
+        self._ref = None
+
+    def _pairing(self, X):
+        if self._ref is None or self._ref[0] is not X:
+            facet, bary, _ = closest_facets(X[self.slaves], X, self.master)
+            w = nodal_areas(X, self.slave_faces, self.slaves)
+            self._ref = (X, self.master[facet], bary, w)
+        return self._ref[1:]
+
+    def contribute(self, X, x, load):
+        if not self.split:
+            return Contribution.zero(len(x))
+        mnodes, bary, w = self._pairing(X)
+        S = len(self.slaves)
+        B = np.zeros((S, 3, 12))
+        B[:, :, 0:3] = np.eye(3)
+        for a in range(3):
+            B[:, :, 3 + 3 * a:6 + 3 * a] = -bary[:, a, None, None] * np.eye(3)
+        nodes = np.concatenate([self.slaves[:, None], mnodes], axis=1)
+        dofs = node_dofs(nodes)
+        q = x[nodes].reshape(S, 12)
+        k = self.values["penalty"] * w
+        t = k[:, None] * np.einsum("sij,sj->si", B, q)  # spring force on the slave, mN
+        force = np.zeros(3 * len(x))
+        np.add.at(force, dofs.ravel(), np.einsum("sij,si->sj", B, t).ravel())
+        K = k[:, None, None] * (B.transpose(0, 2, 1) @ B)
+        return Contribution(force.reshape(-1, 3), *coo_blocks(dofs, dofs, K))

@@ -1,0 +1,148 @@
+"""Sliding contact in the solver: friction on an incline, a non-matching patch test and a
+no-separation interface under a pulling load."""
+
+import numpy as np
+import pytest
+from zoo import box
+
+from mechanics.effects._breastlike import boundary_faces
+from mechanics.mesh import Mesh
+from mechanics.model import build_model
+from mechanics.solver import SolverOptions, solve
+
+# The penalty (1e4 kPa/mm against E = 1 kPa) limits the attainable residual to ~1e-9.
+OPTS = SolverOptions(tol=1e-8, linear_solver="scipy")
+RHO_G = 9.81e-3  # mN/mm^3 for 1000 kg/m^3
+
+
+def stack(lower, upper, *, extra_nodes=()) -> Mesh:
+    """Two separate boxes: ``lower`` (muscle, region 2) under ``upper`` (breast, region 1),
+    each (shape, size, origin). The upper bottom face touches the lower top face; the meshes
+    do not share nodes (non-matching when the shapes differ)."""
+    lo, up = box(*lower), box(*upper)
+    n0 = lo.n_nodes
+    nodes = np.concatenate([lo.nodes, up.nodes, np.reshape(extra_nodes, (-1, 3))])
+    tets = np.concatenate([lo.tets, up.tets + n0])
+    region = np.concatenate([np.full(lo.n_tets, 2), np.full(up.n_tets, 1)])
+    z_top = lower[2][2] + lower[1][2]
+    bl = boundary_faces(lo.tets, np.ones(lo.n_tets, bool))
+    bu = boundary_faces(up.tets, np.ones(up.n_tets, bool)) + n0
+    master = bl[np.all(np.abs(nodes[bl, 2] - z_top) < 1e-9, axis=1)]  # outward = +z
+    slave = bu[np.all(np.abs(nodes[bu, 2] - z_top) < 1e-9, axis=1)][:, ::-1]  # flip to +z
+    top = bu[np.all(np.abs(nodes[bu, 2] - nodes[:, 2][bu].max()) < 1e-9, axis=1)]
+    sets = {"bottom": lo.node_sets["zmin"], "top": np.unique(top),
+            "upper": np.arange(n0, n0 + up.n_nodes)}
+    return Mesh(nodes, tets, region, node_sets=sets,
+                face_sets={"interface": slave, "interface_muscle": master, "top": top})
+
+
+def materials(E_lower, E_upper, nu=0.3):
+    return {2: {"name": "neo_hookean", "E": E_lower, "nu": nu},
+            1: {"name": "neo_hookean", "E": E_upper, "nu": nu}}
+
+
+@pytest.mark.parametrize("tan_a", [0.05, 0.09, 0.11, 0.2])
+def test_block_on_incline_sticks_below_and_slides_above_friction(tan_a):
+    """A stiff block on a plane, gravity tilted by a (tan a vs k = 0.1), held uphill by a
+    soft tension-only cable. Sticking (tan a < k): friction carries the downhill load, the
+    cable stays (almost) slack. Sliding (tan a > k): the cable carries W (sin a - k cos a)
+    and the block slides by that force over the cable stiffness EA/L (closed form, 1%)."""
+    k = 0.1
+    anchor = np.array([[-20.0, 5.0, 4.0]])  # orphan node: held fixed by the solver
+    mesh = stack(((12, 3, 1), (60.0, 15.0, 4.0), (-30.0, -2.5, 0.0)),
+                 ((2, 2, 1), (10.0, 10.0, 5.0), (0.0, 0.0, 4.0)), extra_nodes=anchor)
+    upper = mesh.node_sets["upper"]
+    hook = upper[np.all(np.abs(mesh.nodes[upper] - [0.0, 5.0, 4.0]) < 1e-9, axis=1)]
+    mesh = Mesh(mesh.nodes, mesh.tets, mesh.region, node_sets=mesh.node_sets,
+                face_sets=mesh.face_sets,
+                node_pairs={"ligament_lateral": [[hook[0], mesh.n_nodes - 1]]})
+    a = np.arctan(tan_a)
+    density = 1e4  # kg/m^3: a heavy block makes the slide long compared to elastic slips
+    E_cable, area, L = 10.0, 1.0, 20.0
+    model = build_model(mesh, materials(1e3, 1e3), {
+        "fixed": {"node_set": "bottom"},
+        "gravity": {"direction": (np.sin(a), 0.0, -np.cos(a)), "density": density},
+        "sliding": {"friction": k, "penalty": 1e3, "tangential_penalty": 1e3},
+        "ligaments": {"E": E_cable, "area": area},
+    })
+    st = solve(model, options=SolverOptions(tol=1e-9, linear_solver="scipy", initial_steps=4))
+    W = density * 9.81e-6 * 500.0  # mN
+    slide = st.u[upper, 0].mean()
+    cable = model.effects[3].forces(mesh.nodes, st.x)[0]
+    if tan_a < k:
+        assert cable <= 1e-3 * W * np.sin(a)
+        assert abs(slide) <= 0.01  # mm: elastic deformation of slab, block and penalty only
+    else:
+        N = W * (np.sin(a) - k * np.cos(a))
+        expect = N * L / (E_cable * area)
+        assert abs(cable - N) <= 0.01 * N
+        assert abs(slide - expect) <= 0.01 * expect
+
+
+def _pressure_loads(mesh, p):
+    """Consistent nodal forces (mN) of a uniform pressure p (kPa) on face set 'top'."""
+    tri = mesh.face_sets["top"]
+    X = mesh.nodes
+    A = 0.5 * np.linalg.norm(np.cross(X[tri[:, 1]] - X[tri[:, 0]], X[tri[:, 2]] - X[tri[:, 0]]),
+                             axis=1)
+    f = np.bincount(tri.ravel(), weights=np.repeat(A / 3, 3), minlength=mesh.n_nodes)
+    nodes = np.flatnonzero(f)
+    return nodes, -p * f[nodes, None] * [0.0, 0.0, 1.0]
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.1])
+def test_contact_patch_test_non_matching(friction):
+    """Uniform pressure on a fine block resting on a coarse block (non-matching interface):
+    the contact pressure lumped to the slave nodes and the stress in every element equal the
+    applied pressure (1%; Gauss-point-to-surface contact with 3 points per slave face)."""
+    p = 1e-3  # kPa: small strains, so the Cauchy stress equals the applied dead load
+    mesh = stack(((3, 3, 2), (10.0, 10.0, 4.0), (0.0, 0.0, 0.0)),
+                 ((5, 4, 2), (10.0, 10.0, 4.0), (0.0, 0.0, 4.0)))
+    X = mesh.nodes
+    nodes, forces = _pressure_loads(mesh, p)
+    lower_corner = np.flatnonzero(np.all(np.abs(X - [0, 0, 0]) < 1e-9, axis=1))
+    lower_x = np.flatnonzero(np.all(np.abs(X - [10, 0, 0]) < 1e-9, axis=1))
+    up_corner = np.flatnonzero(np.all(np.abs(X - [0, 0, 8]) < 1e-9, axis=1))
+    up_x = np.flatnonzero(np.all(np.abs(X - [10, 0, 8]) < 1e-9, axis=1))
+    model = build_model(mesh, materials(1.0, 1.0), {
+        "fixed:floor": {"node_set": "bottom", "components": [2]},
+        "fixed:a": {"nodes": np.r_[lower_corner, up_corner], "components": [0, 1]},
+        "fixed:b": {"nodes": np.r_[lower_x, up_x], "components": [1]},
+        "point_load": {"nodes": nodes, "force": forces},
+        "sliding": {"friction": friction, "penalty": 1e4},
+    })
+    st = solve(model, options=OPTS)
+    sliding = model.effects[-1]
+    np.testing.assert_allclose(sliding.nodal_pressure(X, st.x), p, rtol=0.01)
+    np.testing.assert_allclose(st.stress[:, 2, 2], -p, rtol=0.01)
+    assert np.abs(st.stress[:, :2, :2]).max() <= 0.01 * p
+
+
+def test_no_separation_under_pulling_load():
+    """Gravity pulling the block away from the slab: the interface holds it in tension
+    with the penalty gap of the closed form (weight / (penalty * area))."""
+    mesh = stack(((3, 3, 1), (10.0, 10.0, 2.0), (0.0, 0.0, 0.0)),
+                 ((4, 4, 2), (10.0, 10.0, 5.0), (0.0, 0.0, 2.0)))
+    X = mesh.nodes
+    eps = 100.0
+    up_corner = np.flatnonzero(np.all(np.abs(X - [0, 0, 2]) < 1e-9, axis=1))[-1:]
+    up_x = np.flatnonzero(np.all(np.abs(X - [10, 0, 2]) < 1e-9, axis=1))[-1:]
+    model = build_model(mesh, materials(10.0, 10.0), {
+        "fixed": {"node_set": "bottom"},
+        "fixed:a": {"nodes": up_corner, "components": [0, 1]},
+        "fixed:b": {"nodes": up_x, "components": [1]},
+        "gravity": {"direction": (0.0, 0.0, 1.0)},
+        "sliding": {"friction": 0.1, "penalty": eps},
+    })
+    st = solve(model, options=OPTS)
+    assert st.converged
+    sliding = model.effects[-1]
+    gap = sliding.gaps(X, st.x)
+    W = RHO_G * 500.0
+    assert np.all(gap > 0)
+    # total normal force = weight (equilibrium), mean gap = W / (eps * area)
+    tension = -(sliding.pressure(X, st.x) * sliding.weights(X)).sum()
+    assert abs(tension - W) <= 1e-6 * W
+    w = sliding.weights(X)
+    assert abs((w * gap).sum() / w.sum() - W / (eps * 100.0)) <= 1e-6 * W / (eps * 100.0)
+    assert gap.max() <= 1e-3  # mm: held on, not separated

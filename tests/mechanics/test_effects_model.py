@@ -1,0 +1,81 @@
+"""The assembled paper-like model (every effect on) on the breast-like test mesh."""
+
+import itertools
+
+import numpy as np
+import pytest
+
+from mechanics.effects._breastlike import breastlike_mesh
+from mechanics.effects._interface import split_interface
+from mechanics.model import build_model
+from mechanics.solver import SolverError, SolverOptions, solve
+
+GRAVITY = {"prone": (0.0, -1.0, 0.0), "supine": (0.0, 1.0, 0.0),
+           "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0)}
+
+
+def paper_model(mesh, E_breast, E_skin, E_fascia, position, **changes):
+    mats = {r: {"name": "neo_hookean", "E": E_breast, "nu": 0.49} for r in (1, 3, 4, 5)}
+    mats[2] = {"name": "neo_hookean", "E": 10.0, "nu": 0.49}
+    effects = {
+        "gravity": {"direction": GRAVITY[position]},
+        "supports": {},
+        "skin": {"E": E_skin},
+        "fascia": {"E": E_fascia},
+        "ligaments": {"E": 100.0},
+        "sliding": {"friction": 0.1},
+        "regions": {"E_left": E_breast, "E_right": E_breast, "gland": False},
+    }
+    for k, v in changes.items():
+        if v is None:
+            effects.pop(k)
+        else:
+            effects[k] = v
+    return build_model(mesh, mats, effects)
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return split_interface(breastlike_mesh(cells=(8, 6, 3, 2)))
+
+
+def test_paper_model_prone_structures_carry_load(mesh):
+    """Prone (breast 1 kPa): converges; the skin stiffens the breast; ligaments only
+    pull; the breast hangs anteriorly (-y) and slides on the muscle."""
+    st = solve(paper_model(mesh, 1.0, 4.0, 120.0, "prone"))
+    st_noskin = solve(paper_model(mesh, 1.0, 4.0, 120.0, "prone", skin=None))
+    assert st.converged and st_noskin.converged
+    breast = np.unique(mesh.tets[mesh.region != 2])
+    sag = -st.u[breast, 1].max(initial=0) + -st.u[breast, 1].min()
+    assert sag > 1.0  # mm: the breast hangs anteriorly
+    assert st.max_displacement() < st_noskin.max_displacement()
+    model = paper_model(mesh, 1.0, 4.0, 120.0, "prone")
+    lig = next(e for e in model.effects if e.name == "ligaments")
+    N = lig.forces(mesh.nodes, st.x)
+    assert np.all(N >= 0) and N.max() > 0
+
+
+def test_tied_interface_does_not_slide(mesh):
+    """Supine, stiff corner: with 'tied' the breast side follows the muscle side."""
+    st_tied = solve(paper_model(mesh, 4.0, 20.0, 250.0, "supine", sliding=None, tied={}))
+    faces_b, faces_m = mesh.face_sets["interface"], mesh.face_sets["interface_muscle"]
+    rel = np.linalg.norm(st_tied.u[faces_b.ravel()] - st_tied.u[faces_m.ravel()], axis=1)
+    assert rel.max() < 0.01 * st_tied.max_displacement()
+
+
+BOX = list(itertools.product((0.1, 4.0), (1.0, 20.0), (80.0, 250.0))) + [(2.05, 10.5, 165.0)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("position", list(GRAVITY))
+@pytest.mark.parametrize("E_breast,E_skin,E_fascia", BOX)
+def test_paper_model_converges_over_search_box(E_breast, E_skin, E_fascia, position):
+    """Corners and centre of the paper's search box (breast 0.1-4 kPa, skin 1-20 kPa, fascia
+    80-250 kPa) in prone, supine and 45 deg tilted gravity: target every point converges."""
+    mesh = split_interface(breastlike_mesh(cells=(12, 8, 4, 2)))
+    model = paper_model(mesh, E_breast, E_skin, E_fascia, position)
+    try:
+        st = solve(model, options=SolverOptions(max_newton=30, max_cutbacks=12))
+    except SolverError as exc:
+        pytest.fail(f"no convergence at ({E_breast}, {E_skin}, {E_fascia}) {position}: {exc}")
+    assert st.converged and np.all(np.isfinite(st.u))
