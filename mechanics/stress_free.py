@@ -77,19 +77,21 @@ def inverse_fixed_point(
     F: list[np.ndarray] = []
     history: list[dict] = []
     state = None
+    X_good = None  # the last estimate whose forward solve converged
     t0 = time.perf_counter()
     for it in range(1, max_iter + 1):
         try:
             state = _forward(model, X, u, options)
         except SolverError as exc:
-            if not history:
+            if X_good is None:
                 raise
-            # The accelerated guess went too far: step back half-way to the last good X.
+            # The update went too far: step back half-way to the last good estimate.
             log.warning("inverse: forward solve failed (%s); damping the update", exc)
-            X = 0.5 * (X + V[-1].reshape(X.shape))
+            X = 0.5 * (X + X_good)
             V.clear()
             F.clear()
             continue
+        X_good = X.copy()
         u = state.u
         f = (x_target - state.x).reshape(-1)
         err = np.linalg.norm(f.reshape(-1, 3), axis=1)

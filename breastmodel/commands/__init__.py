@@ -13,4 +13,7 @@ COMMANDS = (
     "mesh",
     "surface",
     "simulate",
+    "run",
+    "fit",
+    "sweep",
 )

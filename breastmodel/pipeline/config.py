@@ -1,0 +1,216 @@
+"""The run config (``run.toml``): defaults, validation and parameter paths.
+
+Every table is optional; :func:`resolve_config` fills the defaults and rejects unknown keys,
+so the resolved dict is what the stages hash and what ``DIR/config.toml`` records. See
+``examples/run.toml`` for every key with its meaning.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from breastmodel.config import ConfigError, check_keys, load_toml
+
+__all__ = [
+    "DEFAULTS", "FIT_PARAMETER_KEYS", "get_param", "load_run_config", "materials_by_code",
+    "resolve_config", "set_params",
+]
+
+_SEGMENT_KEYS = {"labels", "gland", "skin_level", "levelset_iterations", "curvature",
+                 "marker_diameter_mm", "min_region_mm3"}
+_PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations"}
+_REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
+                  "sampling", "mask_margin_mm", "marker_diameter_mm", "seed",
+                  "require_fiducials"}
+_SOLVER_KEYS = {"tol", "max_newton", "initial_steps", "min_step", "max_cutbacks",
+                "grow_below", "linear_solver", "line_search"}
+FIT_PARAMETER_KEYS = {"min", "max", "step", "values"}
+
+#: The defaults: a Neo-Hookean breast (1 kPa), a stiff muscle layer (10 kPa), fixed chest
+#: wall, the full-field inverse for the stress-free geometry, no fitting.
+DEFAULTS: dict[str, Any] = {
+    "preprocess": {},
+    "segment": {},
+    "register": {"require_fiducials": True},
+    "mesh": {"size_mm": 8.0, "keep_gland": False, "threads": 1},
+    "surface": {"edge_mm": 2.0},
+    "model": {
+        "formulation": "anp",
+        "density": 1000.0,
+        "g": 9.81,
+        "materials": {
+            "breast_left": {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
+            "breast_right": {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
+            "muscle": {"name": "neo_hookean", "E": 10.0, "nu": 0.49},
+        },
+        "effects": {"fixed": {"node_set": "fixed"}},
+    },
+    "solver": {"tol": 1e-6, "max_newton": 25, "initial_steps": 2, "max_cutbacks": 12},
+    "stress_free": {"method": "inverse", "position": None, "lam": 0.5, "tol_mm": 0.05,
+                    "max_iter": 30, "anderson": 5, "min_improvement_mm": 0.01},
+    "evaluate": {"positions": None},
+    "fit": {"enabled": False, "calibrate": None, "evaluate": None, "method": "optimizer",
+            "budget": 100, "parameters": {}, "n_workers": 1, "scheduler": None,
+            "sensitivity": True},
+}
+
+_TABLE_KEYS = {
+    "preprocess": _PREPROCESS_KEYS, "segment": _SEGMENT_KEYS, "register": _REGISTER_KEYS,
+    "mesh": {"size_mm", "keep_gland", "threads"}, "surface": {"edge_mm"},
+    "model": {"formulation", "density", "g", "materials", "effects"},
+    "solver": _SOLVER_KEYS,
+    "stress_free": {"method", "position", "lam", "tol_mm", "max_iter", "anderson",
+                    "min_improvement_mm"},
+    "evaluate": {"positions"},
+    "fit": {"enabled", "calibrate", "evaluate", "method", "budget", "parameters", "n_workers",
+            "scheduler", "sensitivity"},
+}
+
+
+def _merge(base: dict, over: Mapping) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), dict) and k not in (
+                "materials", "effects", "parameters"):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(dict(v) if isinstance(v, Mapping) else v)
+    return out
+
+
+def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run config") -> dict:
+    """Defaults + ``raw``, validated.
+
+    ``[model.materials]`` and ``[model.effects]`` REPLACE the defaults when given (a config
+    lists the whole model); every other table is merged key by key.
+
+    Raises
+    ------
+    ConfigError
+        Unknown table or key, unknown region name, bad stress-free method or fit settings.
+    """
+    from mechanics.mesh import REGIONS
+
+    raw = dict(raw or {})
+    check_keys(raw, _TABLE_KEYS, where=where)
+    for name, table in raw.items():
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{where}: [{name}] must be a table")
+        check_keys(table, _TABLE_KEYS[name], where=f"{where} [{name}]")
+    cfg = _merge(DEFAULTS, raw)
+    model = cfg["model"]
+    for region, mat in model["materials"].items():
+        if region not in REGIONS:
+            raise ConfigError(f"{where} [model.materials]: unknown region {region!r}; "
+                              f"known: {sorted(REGIONS)}")
+        if not isinstance(mat, Mapping) or "name" not in mat:
+            raise ConfigError(f"{where} [model.materials.{region}] needs a 'name'")
+    for eff, kw in model["effects"].items():
+        if eff.split(":", 1)[0] == "gravity":
+            raise ConfigError(f"{where} [model.effects.gravity]: gravity is set per position "
+                              "by the pipeline; use model.density and model.g")
+        if not isinstance(kw, Mapping | list):
+            raise ConfigError(f"{where} [model.effects.{eff}] must be a table")
+    sf = cfg["stress_free"]
+    if sf["method"] not in ("inverse", "paper", "none"):
+        raise ConfigError(f"{where} [stress_free] method must be 'inverse', 'paper' or "
+                          f"'none', got {sf['method']!r}")
+    fit = cfg["fit"]
+    if fit["method"] not in ("grid", "optimizer"):
+        raise ConfigError(f"{where} [fit] method must be 'grid' or 'optimizer', "
+                          f"got {fit['method']!r}")
+    for path, spec in fit["parameters"].items():
+        if not isinstance(spec, Mapping):
+            raise ConfigError(f"{where} [fit.parameters] {path!r} must be a table "
+                              "{min, max, step} or {values}")
+        check_keys(spec, FIT_PARAMETER_KEYS, where=f"{where} [fit.parameters] {path!r}")
+        if "values" not in spec and not {"min", "max"} <= set(spec):
+            raise ConfigError(f"{where} [fit.parameters] {path!r} needs min and max "
+                              "(and step for a grid) or values")
+        try:
+            get_param(cfg["model"], path)
+        except KeyError as exc:
+            raise ConfigError(f"{where} [fit.parameters]: {exc.args[0]}") from None
+    if fit["enabled"] and not fit["parameters"]:
+        raise ConfigError(f"{where} [fit] enabled = true needs [fit.parameters]")
+    return cfg
+
+
+def load_run_config(path: str | Path | None) -> dict:
+    """Read and resolve a run config file (None: the defaults)."""
+    if path is None:
+        return resolve_config({})
+    return resolve_config(load_toml(path, stage="run"), where=f"run: {path}")
+
+
+def _split(path: str) -> list[str]:
+    parts = str(path).split(".")
+    if len(parts) != 3 or parts[0] not in ("materials", "effects"):
+        raise KeyError(f"parameter path {path!r} must be 'materials.<region>.<name>' or "
+                       "'effects.<effect>.<name>'")
+    return parts
+
+
+def get_param(model: Mapping[str, Any], path: str) -> float | None:
+    """Value of a parameter path in a model table (None when the effect keeps its default).
+
+    A path may tie several parameters to one value: ``"materials.breast_left.E|
+    materials.breast_right.E"`` (the value of the first is returned).
+
+    Raises
+    ------
+    KeyError
+        Malformed path, or a region / effect that the model does not have.
+    """
+    first, *rest = str(path).split("|")
+    for other in rest:
+        get_param(model, other)  # each tied path must exist
+    kind, owner, name = _split(first)
+    table = model[kind]
+    if owner not in table:
+        raise KeyError(f"parameter path {path!r}: the model has no {kind[:-1]} {owner!r} "
+                       f"(has {sorted(table)})")
+    return table[owner].get(name)
+
+
+def set_params(model: Mapping[str, Any], params: Mapping[str, float]) -> dict:
+    """A copy of the model table with parameter paths (``|``-tied allowed) set to values
+    (input unchanged)."""
+    out = copy.deepcopy(dict(model))
+    for tied, value in params.items():
+        for path in str(tied).split("|"):
+            kind, owner, name = _split(path)
+            if owner not in out[kind]:
+                raise KeyError(f"parameter path {path!r}: the model has no {kind[:-1]} "
+                               f"{owner!r}")
+            out[kind][owner] = {**out[kind][owner], name: float(value)}
+    return out
+
+
+def materials_by_code(model: Mapping[str, Any], region_codes: Sequence[int]) -> dict[int, dict]:
+    """Region code -> material dict for the regions a mesh has.
+
+    Gland regions without their own material inherit their side's breast material.
+
+    Raises
+    ------
+    ConfigError
+        A mesh region without a material.
+    """
+    from mechanics.mesh import REGIONS
+
+    names = {code: name for name, code in REGIONS.items()}
+    mats = model["materials"]
+    out = {}
+    for code in sorted({int(c) for c in region_codes}):
+        name = names.get(code, f"region_{code}")
+        if name not in mats and name.startswith("gland_"):
+            name = "breast_" + name.split("_", 1)[1]
+        if name not in mats:
+            raise ConfigError(f"model: the mesh has region {names.get(code, code)!r} but "
+                              f"[model.materials] has no entry for it (has {sorted(mats)})")
+        out[code] = dict(mats[name])
+    return out

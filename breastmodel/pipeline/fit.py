@@ -1,0 +1,253 @@
+"""Fitting material parameters: the paper's grid (a dask sweep) or a bounded optimiser.
+
+The objective of a parameter vector is :func:`breastmodel.pipeline.problem.evaluate_params`
+(mean MHD over the calibration positions, mm). Failed solves give NaN: the grid records them
+as NaN points (the paper lost many at low moduli), the optimiser sees them as a penalty.
+
+The optimiser is Nelder-Mead in the unit cube of log-parameters (bounds by clipping), started
+from the geometric centre of the bounds with a simplex spanning a quarter of each range. Every
+evaluation is stored atomically in ``work_dir/optimizer/<point key>.json``; the search is
+deterministic, so a killed fit replays its stored evaluations and resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("breastmodel.pipeline")
+
+__all__ = ["fit_parameters", "fit_work_dir", "grid_points", "optimise", "sensitivity"]
+
+_PENALTY_MM = 1e3  # objective of a failed evaluation as the optimiser sees it
+
+
+def fit_work_dir(root: str | Path, problem_dir: str | Path,
+                 settings: Mapping[str, Any]) -> Path:
+    """``root/<hash>``: the folder of stored evaluations for one (problem, settings) pair.
+
+    Stored evaluations are keyed by their parameter values only, so evaluations made with
+    another model, solver or problem must live elsewhere.
+    """
+    import hashlib
+
+    from breastmodel.cache import canonical_json
+
+    h = hashlib.sha256((Path(problem_dir).resolve().name + "\0"
+                        + canonical_json(dict(settings))).encode()).hexdigest()
+    return Path(root) / h[:16]
+
+
+def _bounds(spec: Mapping[str, Any]) -> tuple[float, float]:
+    if "values" in spec:
+        v = [float(x) for x in spec["values"]]
+        return min(v), max(v)
+    return float(spec["min"]), float(spec["max"])
+
+
+def grid_points(parameters: Mapping[str, Mapping[str, Any]]) -> list[dict[str, float]]:
+    """Cartesian grid of ``[fit.parameters]`` (``{min, max, step}`` or ``{values}`` each).
+
+    A parameter without ``step`` or ``values`` takes 5 log-spaced values between its bounds.
+    """
+    from breastmodel.sweep import axis, grid
+
+    axes = {}
+    for path, spec in parameters.items():
+        if "values" in spec:
+            axes[path] = [float(v) for v in spec["values"]]
+        elif "step" in spec:
+            axes[path] = axis(float(spec["min"]), float(spec["max"]), float(spec["step"]))
+        else:
+            lo, hi = _bounds(spec)
+            axes[path] = [float(f"{v:.6g}") for v in np.geomspace(lo, hi, 5)]
+    return grid(**axes)
+
+
+class _Evaluator:
+    """Memoised, stored evaluations of the objective (keys: rounded parameter values)."""
+
+    def __init__(self, problem_dir: Path, settings: Mapping[str, Any], folder: Path,
+                 progress: bool):
+        self.problem_dir, self.settings, self.folder = problem_dir, settings, folder
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.history: list[dict] = []
+        self.progress = progress
+        self.n_new = 0
+
+    def __call__(self, params: Mapping[str, float]) -> dict:
+        from breastmodel.config import write_json
+        from breastmodel.pipeline.problem import evaluate_params
+        from breastmodel.sweep import point_key
+
+        params = {k: float(f"{v:.6g}") for k, v in params.items()}
+        key = point_key(params)
+        path = self.folder / f"{key}.json"
+        rec = None
+        if path.is_file():
+            try:
+                rec = json.loads(path.read_text())
+            except ValueError:
+                rec = None
+        if rec is None:
+            rec = {"params": params, **evaluate_params(params, self.problem_dir, self.settings)}
+            write_json(path, rec)
+            self.n_new += 1
+        if not any(h["key"] == key for h in self.history):
+            self.history.append({"key": key, **rec})
+            if self.progress:
+                vals = ", ".join(f"{k.split('.', 1)[1]}={v:.4g}" for k, v in params.items())
+                print(f"     fit #{len(self.history):3d}: {vals} -> MHD "
+                      f"{rec['objective']:.4f} mm", flush=True)
+        return rec
+
+
+def optimise(problem_dir: Path, settings: Mapping[str, Any],
+             parameters: Mapping[str, Mapping[str, Any]], *, budget: int = 100,
+             work_dir: Path, progress: bool = False, x0: Mapping[str, float] | None = None,
+             ) -> dict:
+    """Bounded Nelder-Mead in log-parameter space; at most ``budget`` objective evaluations.
+
+    Returns
+    -------
+    dict
+        ``best`` {params, objective, mhd_mm}, ``history`` (every evaluation in order),
+        ``n_simulations`` (objective evaluations), ``forward_solves``.
+    """
+    from scipy.optimize import minimize
+
+    names = list(parameters)
+    lo = np.log([_bounds(parameters[n])[0] for n in names])
+    hi = np.log([_bounds(parameters[n])[1] for n in names])
+    ev = _Evaluator(Path(problem_dir), settings, Path(work_dir) / "optimizer", progress)
+
+    def params_of(z):
+        z = np.clip(z, 0.0, 1.0)
+        return dict(zip(names, np.exp(lo + z * (hi - lo)).tolist()))
+
+    def f(z):
+        if len(ev.history) >= budget:
+            raise _BudgetSpent
+        obj = ev(params_of(z))["objective"]
+        return obj if obj is not None and math.isfinite(obj) else _PENALTY_MM
+
+    if x0:
+        z0 = np.clip((np.log([x0[n] for n in names]) - lo) / np.maximum(hi - lo, 1e-300), 0, 1)
+    else:
+        z0 = np.full(len(names), 0.5)
+    d = len(names)
+    simplex = np.vstack([z0] + [z0 + 0.25 * np.eye(d)[i] * (1 if z0[i] <= 0.75 else -1)
+                                for i in range(d)])
+    try:
+        minimize(f, z0, method="Nelder-Mead",
+                 options={"initial_simplex": simplex, "xatol": 2e-3, "fatol": 1e-3,
+                          "maxfev": budget, "adaptive": d > 2})
+    except _BudgetSpent:
+        pass
+    return _summary(ev.history, "optimizer")
+
+
+class _BudgetSpent(Exception):
+    pass
+
+
+def _summary(history: list[dict], method: str) -> dict:
+    ok = [h for h in history if h.get("objective") is not None
+          and math.isfinite(h["objective"])]
+    if not ok:
+        raise RuntimeError(f"fit ({method}): every one of {len(history)} evaluations failed; "
+                           f"first error: {history[0].get('error') if history else None}")
+    best = min(ok, key=lambda h: h["objective"])
+    return {"method": method,
+            "best": {"params": best["params"], "objective": best["objective"],
+                     "mhd_mm": best["mhd_mm"]},
+            "n_simulations": len(history),
+            "n_failed": len(history) - len(ok),
+            "forward_solves": int(sum(h.get("forward_solves", 0) for h in history)),
+            "history": [{"params": h["params"], "objective": h["objective"]
+                         if h["objective"] is not None and math.isfinite(h["objective"])
+                         else None, "mhd_mm": h.get("mhd_mm"), "error": h.get("error")}
+                        for h in history]}
+
+
+def grid_search(problem_dir: Path, settings: Mapping[str, Any],
+                parameters: Mapping[str, Mapping[str, Any]], *, work_dir: Path,
+                scheduler: str | None = None, n_workers: int = 2,
+                progress: bool = True) -> dict:
+    """Every grid point on a dask cluster (:func:`breastmodel.sweep.run_sweep`), stored point
+    by point in ``work_dir/grid``; failed points are NaN. Returns like :func:`optimise`."""
+    from breastmodel.pipeline.problem import sweep_point
+    from breastmodel.sweep import run_sweep
+
+    fn = functools.partial(sweep_point, problem_dir=str(Path(problem_dir).resolve()),
+                           settings=json.loads(json.dumps(settings)))
+    recs = run_sweep(fn, grid_points(parameters), Path(work_dir) / "grid", scheduler=scheduler,
+                     n_workers=n_workers, progress=progress)
+    history = []
+    for r in recs:
+        res = r.get("result") or {}
+        obj = res.get("objective")
+        history.append({"params": r["point"], "objective": obj, "mhd_mm": res.get("mhd_mm"),
+                        "forward_solves": res.get("forward_solves", 0),
+                        "error": res.get("error") or r.get("error")})
+    return _summary(history, "grid")
+
+
+def sensitivity(problem_dir: Path, settings: Mapping[str, Any], best: Mapping[str, float],
+                parameters: Mapping[str, Mapping[str, Any]], *, work_dir: Path,
+                rel: float = 0.1, progress: bool = False) -> dict:
+    """One-at-a-time sensitivity at ``best``: objective at p(1 -+ rel) (clipped to bounds)
+    and the log-log slope d ln MHD / d ln p (2 evaluations per parameter)."""
+    ev = _Evaluator(Path(problem_dir), settings, Path(work_dir) / "optimizer", progress)
+    f0 = ev(best)["objective"]
+    out = {}
+    for name, spec in parameters.items():
+        lo, hi = _bounds(spec)
+        p = float(best[name])
+        pl, ph = max(lo, p * (1 - rel)), min(hi, p * (1 + rel))
+        fl = ev({**best, name: pl})["objective"]
+        fh = ev({**best, name: ph})["objective"]
+        slope = None
+        if (f0 and fl is not None and fh is not None and ph > pl
+                and all(math.isfinite(v) for v in (f0, fl, fh))):
+            slope = (fh - fl) / (math.log(ph) - math.log(pl)) / f0
+        out[name] = {"value": p, "low": pl, "high": ph, "objective_low": fl,
+                     "objective_high": fh, "objective": f0, "elasticity": slope}
+    return out
+
+
+def fit_parameters(problem_dir: Path, settings: Mapping[str, Any], fit: Mapping[str, Any], *,
+                   work_dir: Path, progress: bool = True) -> dict:
+    """Fit ``fit["parameters"]`` by ``fit["method"]`` ("grid" or "optimizer"), then (if
+    ``fit["sensitivity"]``) the sensitivity at the optimum. Returns the fit record (see
+    :func:`optimise`) plus ``calibrate``, ``evaluate`` and ``sensitivity``."""
+    from breastmodel.pipeline.config import get_param
+
+    params = fit["parameters"]
+    if fit["method"] == "grid":
+        res = grid_search(problem_dir, settings, params, work_dir=work_dir,
+                          scheduler=fit.get("scheduler"), n_workers=int(fit.get("n_workers", 2)),
+                          progress=progress)
+    else:
+        x0 = {}
+        for n, spec in params.items():
+            v = get_param(settings["model"], n)
+            lo, hi = _bounds(spec)
+            if v is not None and lo <= float(v) <= hi:
+                x0[n] = float(v)
+        res = optimise(problem_dir, settings, params, budget=int(fit["budget"]),
+                       work_dir=work_dir, progress=progress,
+                       x0=x0 if len(x0) == len(params) else None)
+    res["calibrate"] = list(settings["calibrate"])
+    res["evaluate"] = list(settings.get("evaluate") or [])
+    if fit.get("sensitivity", True):
+        res["sensitivity"] = sensitivity(problem_dir, settings, res["best"]["params"], params,
+                                         work_dir=work_dir, progress=progress)
+    return res

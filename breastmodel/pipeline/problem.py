@@ -1,0 +1,327 @@
+"""The prepared problem of a subject and the model computations on it.
+
+A *problem folder* holds everything the mechanics and the scoring need, in the reference
+frame: ``mesh.npz`` (built from the reference position's labels), ``gravity.json``
+(position -> unit gravity vector), ``<position>_skin.npz`` (measured skin: ``vertices``
+(n, 3) mm, ``triangles`` (m, 3)) and ``landmarks.json`` (position -> name -> (3,) mm).
+Workers of a sweep read it from disk, so :func:`evaluate_params` is a picklable
+module-level function of (parameters, folder, settings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.pipeline.config import materials_by_code, set_params
+
+log = logging.getLogger("breastmodel.pipeline")
+
+__all__ = [
+    "Problem", "evaluate_params", "landmark_barycentric", "load_problem", "position_model",
+    "predict_position", "score_position", "skin_node_regions", "solver_options",
+    "stress_free_geometry",
+]
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """mesh : mechanics.mesh.Mesh (reference-position geometry, mm)
+    gravity : position -> (3,) unit vector in the reference frame
+    skins : position -> (vertices (n, 3) mm, triangles (m, 3)) measured skin
+    landmarks : position -> {name: (3,) mm} in the reference frame (may be empty)
+    reference : name of the reference position
+    """
+
+    mesh: Any
+    gravity: Mapping[str, np.ndarray]
+    skins: Mapping[str, tuple[np.ndarray, np.ndarray]]
+    landmarks: Mapping[str, Mapping[str, np.ndarray]]
+    reference: str
+
+
+_PROBLEMS: dict[str, Problem] = {}  # per process: workers evaluate many points on one problem
+
+
+def load_problem(folder: str | Path) -> Problem:
+    """Read a problem folder (memoised per process by its absolute path)."""
+    from mechanics.mesh import Mesh
+
+    key = str(Path(folder).resolve())
+    if key not in _PROBLEMS:
+        folder = Path(folder)
+        meta = json.loads((folder / "problem.json").read_text())
+        gravity = {k: np.asarray(v, float) for k, v in meta["gravity"].items()}
+        skins = {}
+        for pos in gravity:
+            with np.load(folder / f"{pos}_skin.npz") as z:
+                skins[pos] = (z["vertices"].copy(), z["triangles"].copy())
+        landmarks = {p: {n: np.asarray(v, float) for n, v in d.items()}
+                     for p, d in meta.get("landmarks", {}).items()}
+        _PROBLEMS[key] = Problem(Mesh.load_npz(folder / "mesh.npz"), gravity, skins, landmarks,
+                                 meta["reference"])
+    return _PROBLEMS[key]
+
+
+def solver_options(solver: Mapping[str, Any]):
+    """``SolverOptions`` from the ``[solver]`` table."""
+    from mechanics.solver import SolverOptions
+
+    return SolverOptions(**dict(solver))
+
+
+def position_model(problem: Problem, model: Mapping[str, Any], position: str):
+    """The loaded model of one position: materials, effects and that position's gravity.
+
+    Parameters
+    ----------
+    problem : Problem
+    model : the resolved ``[model]`` table (materials by region name, effects, density kg/m^3,
+        g m/s^2, formulation)
+    position : position name (its gravity comes from the problem)
+    """
+    from mechanics.model import build_model
+
+    mesh = problem.mesh
+    effects = {k: v for k, v in model["effects"].items()}
+    effects["gravity"] = {"direction": tuple(float(v) for v in problem.gravity[position]),
+                          "density": float(model["density"]), "g": float(model["g"])}
+    mats = materials_by_code(model, np.unique(mesh.region))
+    return build_model(mesh, mats, effects, formulation=model["formulation"])
+
+
+def _paper_position(problem: Problem, sf: Mapping[str, Any]) -> str:
+    pos = sf.get("position")
+    if pos is None:
+        others = [p for p in problem.gravity if p != problem.reference]
+        pos = "prone" if "prone" in others else others[0]
+    if pos not in problem.gravity:
+        raise ValueError(f"stress-free: position {pos!r} is not among {sorted(problem.gravity)}")
+    return pos
+
+
+def stress_free_geometry(problem: Problem, model: Mapping[str, Any], sf: Mapping[str, Any],
+                         solver: Mapping[str, Any], *,
+                         callback: Callable[[dict], None] | None = None):
+    """Stress-free node positions by the method of the ``[stress_free]`` table.
+
+    ``"inverse"``: full-field inverse of the reference position (its mesh nodes are measured
+    loaded positions), Anderson-accelerated. ``"paper"``: the paper's fixed point on the
+    measured skin of ``sf["position"]`` (default prone). ``"none"``: the reference geometry.
+
+    Returns
+    -------
+    X : (N, 3) mm
+    info : dict (method, converged, history rows, forward solves)
+
+    Raises
+    ------
+    mechanics.solver.SolverError
+        When the very first forward solve fails.
+    """
+    from breastmodel.evaluation import TriangleSurface
+    from mechanics.stress_free import inverse_fixed_point, paper_fixed_point
+
+    mesh = problem.mesh
+    opts = solver_options(solver)
+    method = sf["method"]
+    if method == "none":
+        return np.array(mesh.nodes, float), {"method": "none", "converged": True, "history": []}
+    if method == "inverse":
+        m = position_model(problem, model, problem.reference)
+        res = inverse_fixed_point(m, mesh.nodes, tol=float(sf["tol_mm"]),
+                                  max_iter=int(sf["max_iter"]), anderson=int(sf["anderson"]),
+                                  options=opts, callback=callback)
+        pos = problem.reference
+    else:
+        pos = _paper_position(problem, sf)
+        m = position_model(problem, model, pos)
+        surf = TriangleSurface(*problem.skins[pos])
+        active = np.unique(mesh.face_sets["skin"])
+        res = paper_fixed_point(m, lambda y: surf.closest(y)[0], active,
+                                mesh.node_sets["fixed"], lam=float(sf["lam"]),
+                                min_improvement=float(sf["min_improvement_mm"]),
+                                max_iter=int(sf["max_iter"]), options=opts, callback=callback)
+    info = {"method": res.method, "position": pos, "converged": bool(res.converged),
+            "forward_solves": len(res.history), "history": [dict(r) for r in res.history]}
+    return np.asarray(res.X, float), info
+
+
+def predict_position(problem: Problem, model: Mapping[str, Any], X: np.ndarray, position: str,
+                     solver: Mapping[str, Any], *, u0: np.ndarray | None = None):
+    """Forward solve of one position from the stress-free geometry X; returns the State.
+
+    Raises
+    ------
+    mechanics.solver.SolverError
+        Divergence (``.state`` holds the last converged state).
+    """
+    from mechanics.solver import solve
+
+    m = position_model(problem, model, position)
+    return solve(m, X=X, u0=u0, options=solver_options(solver))
+
+
+def skin_node_regions(mesh) -> np.ndarray:
+    """(N,) region code of every node: the breast region of a tet it belongs to (else the
+    region of any tet), so skin nodes split into left and right breast."""
+    from mechanics.mesh import BREAST_REGIONS
+
+    reg = np.zeros(mesh.n_nodes, np.int64)
+    order = np.argsort(np.isin(mesh.region, BREAST_REGIONS))  # breast tets written last win
+    reg[mesh.tets[order].ravel()] = np.repeat(mesh.region[order], 4)
+    return reg
+
+
+def landmark_barycentric(mesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tet and barycentric coordinates of points in the mesh's reference geometry.
+
+    Points outside the mesh use the nearest tet (by centroid) with clamped coordinates.
+
+    Returns
+    -------
+    tet : (k,) int, bary : (k, 4) float
+    """
+    nodes, tets = np.asarray(mesh.nodes), np.asarray(mesh.tets)
+    a = nodes[tets[:, 0]]
+    T = np.stack([nodes[tets[:, i]] - a for i in (1, 2, 3)], axis=2)  # (M, 3, 3)
+    Tinv = np.linalg.inv(T)
+    cent = nodes[tets].mean(1)
+    out_t, out_b = [], []
+    for p in np.atleast_2d(points):
+        lam = np.einsum("mij,mj->mi", Tinv, p - a)
+        bary = np.column_stack([1 - lam.sum(1), lam])
+        inside = np.flatnonzero(bary.min(1) >= -1e-9)
+        if len(inside):
+            t = int(inside[0])
+            b = bary[t]
+        else:
+            t = int(np.argmin(np.linalg.norm(cent - p, axis=1)))
+            b = np.clip(bary[t], 0, None)
+            b = b / b.sum()
+        out_t.append(t)
+        out_b.append(b)
+    return np.asarray(out_t, np.int64), np.asarray(out_b)
+
+
+def score_position(problem: Problem, x: np.ndarray, position: str, *,
+                   details: bool = False) -> dict:
+    """Metrics of the predicted node positions x (N, 3) mm against a position's measured skin.
+
+    Returns the :func:`breastmodel.evaluation.surface_metrics` dict; with ``details`` also
+    ``regions`` (per skin region), ``landmarks`` (when known) and ``signed_error`` ((n_skin,)
+    mm, predicted skin nodes to the measured surface, positive outside) with ``skin_nodes``.
+    """
+    from breastmodel.evaluation import (
+        landmark_errors,
+        per_region_metrics,
+        point_to_surface,
+        surface_metrics,
+    )
+    from mechanics.mesh import REGIONS
+
+    mesh = problem.mesh
+    faces = np.asarray(mesh.face_sets["skin"])
+    nodes = np.unique(faces)
+    remap = np.full(mesh.n_nodes, -1, np.int64)
+    remap[nodes] = np.arange(len(nodes))
+    pv, pf = x[nodes], remap[faces]
+    mv, mf = problem.skins[position]
+    out = surface_metrics(pv, pf, mv, mf)
+    if not details:
+        return out
+    d, _ = point_to_surface(pv, mv, mf, signed=True)
+    names = {c: n for n, c in REGIONS.items()}
+    out["regions"] = per_region_metrics(d, skin_node_regions(mesh)[nodes], names)
+    out["signed_error"] = d
+    out["skin_nodes"] = nodes
+    lm_ref = problem.landmarks.get(problem.reference, {})
+    lm_pos = problem.landmarks.get(position, {})
+    common = [k for k in lm_ref if k in lm_pos]
+    if common:
+        tet, bary = landmark_barycentric(mesh, np.array([lm_ref[k] for k in common]))
+        pred = np.einsum("ki,kij->kj", bary, x[np.asarray(mesh.tets)[tet]])
+        out["landmarks"] = landmark_errors(pred, np.array([lm_pos[k] for k in common]), common)
+    return out
+
+
+def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
+                    settings: Mapping[str, Any]) -> dict:
+    """The fitting objective: stress-free estimate -> forward solve of every calibration
+    position -> MHD on the skin. Never raises for a failed solve (NaN instead).
+
+    Parameters
+    ----------
+    params : parameter path -> value (e.g. ``{"materials.breast_left.E": 0.8}``, kPa)
+    problem_dir : problem folder (see the module notes)
+    settings : ``{"model", "solver", "stress_free"}`` tables of the resolved config and
+        ``"calibrate"`` (position names) and optionally ``"evaluate"`` (also scored, not in
+        the objective)
+
+    Returns
+    -------
+    dict
+        ``objective`` (mean MHD over the calibration positions, mm; NaN on failure),
+        ``mhd_mm`` {position: mm}, ``forward_solves``, ``wall_s``, ``error`` (str or None).
+    """
+    t0 = time.perf_counter()
+    problem = load_problem(problem_dir)
+    model = set_params(settings["model"], params)
+    calibrate = list(settings["calibrate"])
+    positions = calibrate + [p for p in settings.get("evaluate") or () if p not in calibrate]
+    out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "forward_solves": 0,
+                           "error": None}
+    try:
+        X, info = stress_free_geometry(problem, model, settings["stress_free"],
+                                       settings["solver"])
+        out["forward_solves"] += len(info["history"])
+        for pos in positions:
+            try:
+                state = predict_position(problem, model, X, pos, settings["solver"])
+            except Exception:
+                if pos in calibrate:
+                    raise
+                out["mhd_mm"][pos] = math.nan  # a held-out failure does not void the point
+                continue
+            finally:
+                out["forward_solves"] += 1
+            out["mhd_mm"][pos] = score_position(problem, state.x, pos)["mhd_mm"]
+        out["objective"] = float(np.mean([out["mhd_mm"][p] for p in calibrate]))
+    except Exception as exc:  # noqa: BLE001 - one failed point must not end a fit or sweep
+        # (SolverError, inverted elements, and any failure inside the stress-free iteration
+        # are recorded with their type; a fit where every point fails reports the first)
+        out["error"] = f"{type(exc).__name__}: {exc}"
+    out["wall_s"] = time.perf_counter() - t0
+    return out
+
+
+def sweep_point(point: Mapping[str, float], *, problem_dir: str,
+                settings: Mapping[str, Any]) -> dict:
+    """:func:`evaluate_params` in the form ``run_sweep`` calls (use functools.partial)."""
+    return evaluate_params(point, problem_dir, settings)
+
+
+def fit_settings(cfg: Mapping[str, Any], positions: Sequence[str], reference: str) -> dict:
+    """Settings of :func:`evaluate_params` from a resolved run config.
+
+    Calibration positions default to prone and the reference (the paper's calibration),
+    evaluation positions to the rest.
+    """
+    fit = cfg["fit"]
+    cal = fit["calibrate"] or [p for p in ("prone", reference) if p in positions]
+    cal = list(dict.fromkeys(cal))
+    ev = fit["evaluate"] if fit["evaluate"] is not None else [p for p in positions
+                                                            if p not in cal]
+    for p in [*cal, *ev]:
+        if p not in positions:
+            raise ValueError(f"fit: position {p!r} is not among the subject's {sorted(positions)}")
+    return {"model": cfg["model"], "solver": cfg["solver"], "stress_free": cfg["stress_free"],
+            "calibrate": cal, "evaluate": list(ev)}

@@ -1,0 +1,375 @@
+"""``run_subject``: the cached subject pipeline.
+
+segment (per position) -> register -> mesh + measured skins (the *problem*) -> [fit] ->
+stress-free geometry -> predict + score (per position) -> outputs (metrics.json,
+``<position>_predicted.ply``, params.json, report.html).
+
+Every stage is a :class:`breastmodel.cache.Cache` stage under ``OUT/cache/`` keyed by the
+hash of its own settings and its inputs (files by content, upstream stages by key): a rerun
+skips what is done, a killed run resumes at the stage it was in, and a changed model
+parameter recomputes only the stress-free geometry, the predictions and the outputs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.cache import Cache, StageKey, stage_key
+from breastmodel.errors import StageError
+
+log = logging.getLogger("breastmodel.pipeline")
+
+__all__ = ["Prepared", "RunResult", "prepare_subject", "run_subject"]
+
+
+class RunResult(dict):
+    """``{"stages": [{"name", "key", "status": "ran" | "skipped", "wall_s"}], "metrics",
+    "params", "out"}``."""
+
+
+@dataclass(frozen=True, eq=False)
+class Prepared:
+    """subject, positions (names), runner (stage log), problem_dir, problem_key."""
+
+    subject: Any
+    positions: list[str]
+    runner: Any
+    problem_dir: Path
+    problem_key: str
+
+
+class _Runner:
+    def __init__(self, out: Path, progress: bool):
+        self.cache = Cache(out / "cache")
+        self.stages: list[dict] = []
+        self.progress = progress
+
+    def stage(self, name: str, config: Mapping[str, Any], inputs, fn: Callable[[Path], None],
+              *, label: str | None = None) -> tuple[Path, StageKey]:
+        key = stage_key(name, config, inputs)
+        label = label or name
+        done = self.cache.done(name, key)
+        t0 = time.perf_counter()
+        if self.progress:
+            print(f"[{len(self.stages) + 1:2d}] {label:<26s} "
+                  f"{'cached' if done else 'running...'}", flush=True)
+        path = self.cache.run(name, key, fn, config=config)
+        wall = time.perf_counter() - t0
+        if self.progress and not done:
+            print(f"     {label:<26s} done in {wall:.1f} s", flush=True)
+        self.stages.append({"name": name, "label": label, "key": str(key),
+                            "status": "skipped" if done else "ran", "wall_s": round(wall, 3)})
+        return path, key
+
+
+# ---------------------------------------------------------------- stage bodies
+
+
+def _segment(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path], None]:
+    def fn(d: Path) -> None:
+        import SimpleITK as sitk
+
+        from breastmodel.commands.segment import segment_position
+        from imaging.io import read_volume, write_volume
+
+        vol = subject.positions[position].volume_path
+        seg = dict(cfg["segment"])
+        given = seg.pop("labels", None)
+        if given:
+            src = Path(given) / f"{position}_labels.nii.gz"
+            if not src.is_file():
+                raise StageError("segment", f"[segment] labels = {given!r} has no label map "
+                                 f"for position {position!r}", src)
+            labels = read_volume(src)
+            write_volume(labels, d / f"{position}_labels.nii.gz")
+        else:
+            try:
+                segment_position(subject, position, d, preprocess_options=cfg["preprocess"],
+                                 segment_options=seg)
+            except ValueError as exc:
+                raise StageError("segment", str(exc), vol) from None
+            labels = read_volume(d / f"{position}_labels.nii.gz")
+        a = sitk.GetArrayViewFromImage(labels)
+        if not np.isin(a, (1, 3)).any():
+            raise StageError("segment", f"position {position!r}: the segmentation has no "
+                             "breast tissue (label 1)", vol)
+        if not (a == 2).any():
+            raise StageError("segment", f"position {position!r}: the segmentation has no "
+                             "muscle / chest wall (label 2)", vol)
+    return fn
+
+
+def _register(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
+    def fn(d: Path) -> None:
+        import tomli_w
+
+        from breastmodel.commands.register import register_subject
+
+        labels = d / "labels_in"
+        labels.mkdir()
+        for pos, folder in seg_dirs.items():
+            shutil.copy2(folder / f"{pos}_labels.nii.gz", labels / f"{pos}_labels.nii.gz")
+        reg = {k: v for k, v in cfg["register"].items() if k != "require_fiducials"}
+        cfg_path = d / "register.toml"
+        cfg_path.write_text(tomli_w.dumps({"register": reg}))
+        try:
+            register_subject(subject.root, d, seg_dir=labels, config=cfg_path)
+        except (ValueError, RuntimeError) as exc:
+            raise StageError("register", str(exc), subject.root) from None
+        shutil.rmtree(labels)
+    return fn
+
+
+def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
+    def fn(d: Path) -> None:
+        import SimpleITK as sitk
+
+        from breastmodel.config import write_json
+        from meshing import mesh_labels
+        from meshing.surface import skin_surface
+        from registration.transforms import read_transform, transform_points
+
+        ref = subject.reference
+        ref_labels = sitk.ReadImage(str(reg_dir / "reference_labels.nii.gz"))
+        m = cfg["mesh"]
+        try:
+            mesh = mesh_labels(ref_labels, size_mm=float(m["size_mm"]),
+                               keep_gland=bool(m["keep_gland"]), threads=int(m["threads"]))
+        except (ValueError, RuntimeError) as exc:
+            raise StageError("mesh", str(exc), reg_dir / "reference_labels.nii.gz") from None
+        mesh.save_npz(d / "mesh.npz")
+        edge = float(cfg["surface"]["edge_mm"])
+        for pos in subject.positions:
+            path = reg_dir / ("reference_labels.nii.gz" if pos == ref
+                              else f"{pos}_labels_in_reference.nii.gz")
+            try:
+                v, f = skin_surface(sitk.ReadImage(str(path)), target_edge_mm=edge)
+            except (ValueError, RuntimeError) as exc:
+                raise StageError("surface", f"position {pos!r}: {exc}", path) from None
+            np.savez(d / f"{pos}_skin.npz", vertices=v, triangles=f)
+        gravity = json.loads((reg_dir / "gravity.json").read_text())
+        landmarks = {}
+        for pos, pts in (subject.landmarks or {}).items():
+            if pos not in gravity or not pts:
+                continue
+            names = sorted(pts)
+            p = np.array([pts[k] for k in names], float)
+            if pos != ref:  # reference -> position image; its inverse brings them home
+                tfm = read_transform(reg_dir / f"{pos}.tfm")
+                p = transform_points(tfm.GetInverse(), p)
+            landmarks[pos] = {k: v.tolist() for k, v in zip(names, p)}
+        write_json(d / "problem.json", {"reference": ref, "gravity": gravity,
+                                        "landmarks": landmarks,
+                                        "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets})
+    return fn
+
+
+def _fit(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, Any], out: Path):
+    def fn(d: Path) -> None:
+        from breastmodel.config import write_json
+        from breastmodel.pipeline.fit import fit_parameters, fit_work_dir
+
+        res = fit_parameters(problem_dir, settings, cfg["fit"],
+                             work_dir=fit_work_dir(out / "fit", problem_dir, settings),
+                             progress=True)
+        write_json(d / "fit.json", res)
+    return fn
+
+
+def _stress_free(problem_dir: Path, cfg: Mapping[str, Any], model: Mapping[str, Any],
+                 progress: bool):
+    def show(row: dict) -> None:
+        print(f"     iteration {row['iteration']:2d}: node mismatch mean "
+              f"{row['mean_error']:.4f} mm, max {row['max_error']:.4f} mm", flush=True)
+
+    def fn(d: Path) -> None:
+        from breastmodel.config import write_json
+        from breastmodel.pipeline.problem import load_problem, stress_free_geometry
+        from mechanics.solver import SolverError
+
+        problem = load_problem(problem_dir)
+        try:
+            X, info = stress_free_geometry(problem, model, cfg["stress_free"], cfg["solver"],
+                                           callback=show if progress else None)
+        except SolverError as exc:
+            raise StageError("stress-free", f"forward solve failed: {exc}") from None
+        np.save(d / "X.npy", X)
+        write_json(d / "stress_free.json", info)
+    return fn
+
+
+def _predict(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[str, Any],
+             model: Mapping[str, Any]):
+    def fn(d: Path) -> None:
+        from breastmodel.config import write_json
+        from breastmodel.pipeline.problem import load_problem, predict_position, score_position
+        from mechanics.solver import SolverError
+
+        problem = load_problem(problem_dir)
+        X = np.load(sf_dir / "X.npy")
+        error = None
+        try:
+            state = predict_position(problem, model, X, position, cfg["solver"])
+        except SolverError as exc:
+            if exc.state is None:
+                raise StageError("predict", f"position {position!r}: {exc}") from None
+            state, error = exc.state, str(exc)
+            log.warning("predict: %s did not converge (%s); scoring the last converged state",
+                        position, exc)
+        x = state.x
+        m = score_position(problem, x, position, details=True)
+        np.savez(d / "predicted.npz", x=x, signed_error=m.pop("signed_error"),
+                 skin_nodes=m.pop("skin_nodes"))
+        m.update(converged=bool(state.converged), load_reached=float(state.load),
+                 newton_iterations=state.newton_iterations, error=error,
+                 max_displacement_mm=float(state.max_displacement()))
+        write_json(d / "metrics.json", m)
+    return fn
+
+
+# ---------------------------------------------------------------- the pipeline
+
+
+def _check_subject(subject, cfg: Mapping[str, Any]) -> list[str]:
+    positions = list(subject.positions)
+    if len(positions) < 2:
+        raise StageError("subject", f"the subject has only the position(s) {positions}; the "
+                         "pipeline needs the reference and at least one other", subject.root)
+    ev = cfg["evaluate"]["positions"]
+    for p in ev or ():
+        if p not in positions:
+            raise StageError("subject", f"[evaluate] position {p!r} is missing from the "
+                             f"subject (it has {positions})", subject.root / "subject.toml")
+    if cfg["register"].get("require_fiducials", True) and not subject.fiducials:
+        raise StageError("register", "no fiducials.csv: rigid registration is initialised "
+                         "from the fiducials; add them or set [register] require_fiducials = "
+                         "false to initialise from image moments", subject.root)
+    return positions
+
+
+def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
+                    progress: bool = True, command: str = "run") -> Prepared:
+    """Run (or reuse) the stages up to the problem folder: segment every position, register,
+    mesh the reference and extract every measured skin in the reference frame.
+
+    Raises
+    ------
+    StageError
+        The first stage that meets bad input (missing position volume, no fiducials, no
+        breast in a segmentation...), naming the file and the problem.
+    """
+    from breastmodel.config import write_provenance
+    from imaging.subject import SubjectError, read_subject
+
+    out = Path(out)
+    try:
+        subject = read_subject(subject_dir)
+    except SubjectError as exc:
+        raise StageError("subject", str(exc)) from None
+    positions = _check_subject(subject, cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    write_provenance(out, {"subject": str(subject_dir), **cfg}, command=command)
+    R = _Runner(out, progress)
+
+    seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
+    seg_dirs, seg_keys = {}, []
+    for pos in positions:
+        vol = subject.positions[pos].volume_path
+        inputs: list = [vol]
+        given = cfg["segment"].get("labels")
+        if given:
+            src = Path(given) / f"{pos}_labels.nii.gz"
+            inputs = [src] if src.is_file() else [vol]
+        d, k = R.stage("segment", {**seg_cfg, "position": pos}, inputs,
+                       _segment(subject, pos, seg_cfg), label=f"segment {pos}")
+        seg_dirs[pos] = d
+        seg_keys.append(k)
+    sub_files = [subject.root / "subject.toml"] + [
+        subject.positions[p].volume_path for p in positions]
+    if (subject.root / "fiducials.csv").is_file():
+        sub_files.append(subject.root / "fiducials.csv")
+    reg_dir, reg_key = R.stage("register", {"register": cfg["register"]},
+                               [*seg_keys, *sub_files], _register(subject, seg_dirs, cfg))
+    lm = [subject.root / "landmarks.csv"] if (subject.root / "landmarks.csv").is_file() else []
+    prob_dir, prob_key = R.stage("problem", {"mesh": cfg["mesh"], "surface": cfg["surface"]},
+                                 [reg_key, *lm], _problem(subject, reg_dir, cfg),
+                                 label="mesh + measured skins")
+    return Prepared(subject, positions, R, prob_dir, prob_key)
+
+
+def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
+                progress: bool = True) -> RunResult:
+    """Run the cached pipeline of one subject.
+
+    Parameters
+    ----------
+    subject_dir : subject folder (``subject.toml``, volumes, fiducials.csv, landmarks.csv)
+    cfg : resolved run config (:func:`breastmodel.pipeline.config.resolve_config`)
+    out : output folder; the stage cache lives in ``out/cache``
+    progress : print one line per stage
+
+    Returns
+    -------
+    RunResult
+        The stages with their status, the metrics and the parameters used.
+
+    Raises
+    ------
+    StageError
+        The first stage that meets bad input, naming the file and the problem.
+    """
+    from breastmodel.config import write_json
+    from breastmodel.pipeline.config import get_param, set_params
+    from breastmodel.pipeline.outputs import write_outputs
+    from breastmodel.pipeline.problem import fit_settings
+
+    t0 = time.perf_counter()
+    out = Path(out)
+    prep = prepare_subject(subject_dir, cfg, out, progress=progress)
+    subject, positions, R = prep.subject, prep.positions, prep.runner
+    prob_dir, prob_key = prep.problem_dir, prep.problem_key
+
+    model = cfg["model"]
+    fit_info = None
+    if cfg["fit"]["enabled"]:
+        settings = fit_settings(cfg, positions, subject.reference)
+        fit_dir, _ = R.stage("fit", {"settings": settings, "fit": {
+            k: v for k, v in cfg["fit"].items() if k not in ("n_workers", "scheduler")}},
+            [prob_key], _fit(prob_dir, cfg, settings, out))
+        fit_info = json.loads((fit_dir / "fit.json").read_text())
+        model = set_params(model, fit_info["best"]["params"])
+
+    sf_cfg = {"model": model, "stress_free": cfg["stress_free"], "solver": cfg["solver"]}
+    sf_dir, sf_key = R.stage("stress_free", sf_cfg, [prob_key],
+                             _stress_free(prob_dir, cfg, model, R.progress),
+                             label=f"stress-free ({cfg['stress_free']['method']})")
+    pred_dirs = {}
+    for pos in cfg["evaluate"]["positions"] or positions:
+        pred_dirs[pos], _ = R.stage("predict", {"position": pos, "model": model,
+                                                "solver": cfg["solver"]},
+                                    [prob_key, sf_key], _predict(prob_dir, sf_dir, pos, cfg,
+                                                                 model),
+                                    label=f"predict {pos}")
+
+    paths = sorted({p for p in (cfg["fit"]["parameters"] or {})} | {
+        f"materials.{r}.E" for r in model["materials"]})
+    params = {"parameters": {p: get_param(model, p) for p in paths},
+              "model": model, "fitted": fit_info is not None}
+    if fit_info is not None:
+        params["fit"] = {k: fit_info[k] for k in ("method", "best", "n_simulations",
+                                                  "calibrate", "evaluate") if k in fit_info}
+    result = write_outputs(out, prob_dir, sf_dir, pred_dirs, params, fit_info,
+                           subject_id=subject.id)
+    res = RunResult(stages=R.stages, metrics=result, params=params, out=str(out),
+                    wall_s=time.perf_counter() - t0)
+    write_json(out / "stages.json", {"stages": R.stages, "wall_s": res["wall_s"]})
+    return res

@@ -1,0 +1,222 @@
+"""The cached subject pipeline end to end on a small, coarse phantom (2 mm voxels).
+
+One module-scoped run (~80 s on the 2-core machine) feeds every test here: the outputs, the
+rerun that skips every stage, and a changed model parameter that reruns only the stress-free
+geometry and the predictions. Segmentation is taken from the phantom's truth label maps
+(``[segment] labels``): the active contours have their own tests and cost ~20 s a position.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomli_w
+
+from breastmodel.config import ConfigError
+from breastmodel.errors import StageError
+from breastmodel.pipeline import resolve_config, run_subject
+
+POSITIONS = ("prone", "supine", "supine_tilted")
+
+
+def _config(truth: Path, **model) -> dict:
+    raw = {
+        "segment": {"labels": str(truth)},
+        "register": {"shrink": [2, 1], "smooth_mm": [2.0, 0.0], "iterations": 30},
+        "mesh": {"size_mm": 12.0},
+        "surface": {"edge_mm": 4.0},
+        "stress_free": {"tol_mm": 0.2, "max_iter": 10},
+    }
+    if model:
+        raw["model"] = model
+    return raw
+
+
+def _cli(argv: list[str]) -> int:
+    from breastmodel.commands import run as run_cmd
+
+    parser = argparse.ArgumentParser()
+    run_cmd.add_parser(parser.add_subparsers())
+    return run_cmd.run(parser.parse_args(["run", *argv]))
+
+
+@pytest.fixture(scope="module")
+def phantom(tmp_path_factory) -> Path:
+    from breastmodel.phantom import make_phantom
+
+    root = tmp_path_factory.mktemp("pipeline")
+    return make_phantom(root / "subject", seed=3, small=True, voxel_size=2.0, progress=False)
+
+
+@pytest.fixture(scope="module")
+def first_run(phantom, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "out"
+    cfg_path = out.parent / "run.toml"
+    cfg_path.write_text(tomli_w.dumps(_config(Path(str(phantom) + "_truth"))))
+    assert _cli([str(phantom), "--config", str(cfg_path), "--out", str(out), "--quiet"]) == 0
+    return out, cfg_path
+
+
+def _stages(out: Path) -> dict[str, str]:
+    return {s["label"]: s["status"] for s in json.loads((out / "stages.json").read_text())
+            ["stages"]}
+
+
+def test_run_writes_metrics_surfaces_params_report(first_run):
+    out, _ = first_run
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(metrics["positions"]) == set(POSITIONS)
+    for pos, m in metrics["positions"].items():
+        for key in ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm"):
+            assert math.isfinite(m[key]) and m[key] >= 0, (pos, key)
+        # MHD is a mean of distances, the Hausdorff distance their maximum
+        assert m["mhd_mm"] <= m["hausdorff_mm"]
+        assert m["p95_mm"] <= m["hausdorff_mm"] + 1e-9
+        assert m["converged"]
+        assert {"breast_left", "breast_right", "all"} <= set(m["regions"])
+        assert m["landmarks"]["n"] > 0 and math.isfinite(m["landmarks"]["mean_mm"])
+        assert (out / f"{pos}_predicted.ply").stat().st_size > 1000
+    # the reference position is the one the stress-free geometry was solved for: its
+    # prediction sits on the measured skin within a fraction of the 12 mm elements
+    assert metrics["positions"]["supine"]["mhd_mm"] < 2.0
+    params = json.loads((out / "params.json").read_text())
+    assert params["parameters"]["materials.breast_left.E"] == 1.0
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") == len(POSITIONS) + 1
+    for pos in POSITIONS:
+        assert pos in html
+
+
+def test_predicted_ply_is_in_the_reference_frame(first_run):
+    import open3d as o3d
+
+    out, _ = first_run
+    mesh = o3d.io.read_triangle_mesh(str(out / "supine_predicted.ply"))
+    v = np.asarray(mesh.vertices)
+    skin = np.load(next((out / "cache" / "problem").glob("*/supine_skin.npz")))["vertices"]
+    # same frame: the bounding boxes overlap to within a few element sizes
+    assert np.abs(v.min(0) - skin.min(0)).max() < 15.0
+    assert np.abs(v.max(0) - skin.max(0)).max() < 15.0
+
+
+def test_rerun_skips_every_stage(phantom, first_run):
+    out, cfg_path = first_run
+    before = json.loads((out / "metrics.json").read_text())
+    assert _cli([str(phantom), "--config", str(cfg_path), "--out", str(out), "--quiet"]) == 0
+    assert set(_stages(out).values()) == {"skipped"}
+    after = json.loads((out / "metrics.json").read_text())
+    assert after["positions"]["prone"]["mhd_mm"] == before["positions"]["prone"]["mhd_mm"]
+
+
+def test_changed_parameter_reruns_only_downstream(phantom, first_run):
+    out, _ = first_run
+    truth = Path(str(phantom) + "_truth")
+    base = resolve_config(_config(truth))
+    model = base["model"]
+    model["materials"]["breast_left"] = {**model["materials"]["breast_left"], "E": 0.7}
+    cfg = resolve_config({**_config(truth), "model": model})
+    before = json.loads((out / "metrics.json").read_text())
+    res = run_subject(phantom, cfg, out, progress=False)
+    status = {s["label"]: s["status"] for s in res["stages"]}
+    upstream = [k for k in status if k.startswith(("segment", "register", "mesh"))]
+    downstream = [k for k in status if k.startswith(("stress-free", "predict"))]
+    assert len(upstream) == 5 and len(downstream) == 4
+    assert all(status[k] == "skipped" for k in upstream)
+    assert all(status[k] == "ran" for k in downstream)
+    after = res["metrics"]["positions"]["prone"]["mhd_mm"]
+    assert after != before["positions"]["prone"]["mhd_mm"]
+    assert res["params"]["parameters"]["materials.breast_left.E"] == 0.7
+
+
+def test_failure_midway_keeps_finished_stages(phantom, first_run, monkeypatch):
+    """A run that dies in the last prediction resumes there: nothing finished is redone."""
+    from breastmodel.pipeline import problem as problem_mod
+
+    out, _ = first_run
+    truth = Path(str(phantom) + "_truth")
+    model = resolve_config(_config(truth))["model"]
+    model["materials"]["breast_right"] = {**model["materials"]["breast_right"], "E": 0.8}
+    cfg = resolve_config({**_config(truth), "model": model})
+    real = problem_mod.score_position
+
+    def dies_on_tilted(problem, x, position, **kw):
+        if position == "supine_tilted":
+            raise RuntimeError("killed")
+        return real(problem, x, position, **kw)
+
+    monkeypatch.setattr(problem_mod, "score_position", dies_on_tilted)
+    with pytest.raises(RuntimeError, match="killed"):
+        run_subject(phantom, cfg, out, progress=False)
+    monkeypatch.undo()
+    assert not list((out / "cache" / "predict").glob(".tmp-*"))  # no half stage left
+    res = run_subject(phantom, cfg, out, progress=False)
+    status = {s["label"]: s["status"] for s in res["stages"]}
+    assert status["predict supine_tilted"] == "ran"
+    assert [k for k, v in status.items() if v == "ran"] == ["predict supine_tilted"]
+    assert math.isfinite(res["metrics"]["positions"]["supine_tilted"]["mhd_mm"])
+
+
+def _copy_subject(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_missing_fiducials_fail_at_register(phantom, tmp_path):
+    subj = _copy_subject(phantom, tmp_path / "s")
+    (subj / "fiducials.csv").unlink()
+    cfg = resolve_config(_config(Path(str(phantom) + "_truth")))
+    with pytest.raises(StageError, match=r"^register.*fiducials"):
+        run_subject(subj, cfg, tmp_path / "out", progress=False)
+
+
+def test_missing_position_volume_fails_at_subject(phantom, tmp_path):
+    subj = _copy_subject(phantom, tmp_path / "s")
+    (subj / "prone.nii.gz").unlink()
+    cfg = resolve_config(_config(Path(str(phantom) + "_truth")))
+    with pytest.raises(StageError, match=r"^subject.*prone"):
+        run_subject(subj, cfg, tmp_path / "out", progress=False)
+
+
+def test_segmentation_without_breast_fails_at_segment(phantom, tmp_path):
+    import SimpleITK as sitk
+
+    truth = Path(str(phantom) + "_truth")
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    for pos in POSITIONS:
+        img = sitk.ReadImage(str(truth / f"{pos}_labels.nii.gz"))
+        if pos == "prone":
+            a = sitk.GetArrayFromImage(img)
+            a[np.isin(a, (1, 3))] = 0
+            new = sitk.GetImageFromArray(a)
+            new.CopyInformation(img)
+            img = new
+        sitk.WriteImage(img, str(labels / f"{pos}_labels.nii.gz"))
+    cfg = resolve_config({**_config(truth), "segment": {"labels": str(labels)}})
+    with pytest.raises(StageError, match=r"^segment.*prone.*no breast"):
+        run_subject(phantom, cfg, tmp_path / "out", progress=False)
+    # nothing half-done is left under a final stage name
+    assert not list((tmp_path / "out" / "cache" / "segment").glob("*/stage.json")) or all(
+        json.loads(p.read_text())["config"]["position"] != "prone"
+        for p in (tmp_path / "out" / "cache" / "segment").glob("*/stage.json"))
+
+
+@pytest.mark.parametrize("raw, match", [
+    ({"model": {"materials": {"breast_middle": {"name": "neo_hookean", "E": 1.0}}}},
+     "unknown region"),
+    ({"stress_free": {"method": "magic"}}, "method"),
+    ({"fit": {"enabled": True}}, "fit.parameters"),
+    ({"fit": {"parameters": {"materials.breast_left.G": {"min": 1}}}}, "min and max"),
+    ({"fit": {"parameters": {"effects.skin.E": {"min": 1.0, "max": 20.0}}}}, "no effect"),
+    ({"mesh": {"size": 3.0}}, "unknown key"),
+    ({"model": {"effects": {"gravity": {"direction": [0, 0, 1]}}}}, "per position"),
+])
+def test_bad_config_is_rejected(raw, match):
+    with pytest.raises(ConfigError, match=match):
+        resolve_config(raw)
