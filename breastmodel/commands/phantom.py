@@ -31,10 +31,18 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--max-rotation-deg", type=float, default=5.0, help="rigid motion bound")
     p.add_argument("--max-translation-mm", type=float, default=10.0, help="rigid motion bound")
     p.add_argument("--small", action="store_true", help="half-size torso, small field of view")
+    from breastmodel.phantom.simulated import add_simulation_arguments
+
+    add_simulation_arguments(p)
     return p
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.simulate:
+        from breastmodel.phantom.simulated import run_simulated
+
+        print(f"wrote {run_simulated(args)} (deformed by simulation)")
+        return 0
     from breastmodel.phantom import make_phantom, truth_folder
 
     positions = tuple(p.strip() for p in args.positions.split(",") if p.strip())

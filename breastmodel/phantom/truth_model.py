@@ -1,0 +1,169 @@
+"""The physics that deforms a simulated phantom ("truth model"), and presets with one hidden
+effect changed, for testing the diagnosis of missing effects.
+
+A :class:`TruthModel` is plain data: bulk materials per region code, effects by registered
+name with their keyword arguments (``mechanics.effects.EFFECTS``; gravity is added per
+position by the simulation), and the target tet size of the mesh. Presets are the default
+model plus a small dict of overrides (an effect set to ``None`` is removed).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
+
+from mechanics.mesh import REGIONS
+
+__all__ = ["TruthModel", "default_truth_model", "preset", "PRESETS", "with_effects"]
+
+#: Young's modulus of the breast (fat + gland) in the default truth, kPa. Measured with 1 kPa
+#: (bench/phantom_sim.py, adult anatomy, 8 mm mesh): nipple displacement from the stress-free
+#: state 23 mm prone and 28 mm supine (~50 mm prone to supine), above the paper's range;
+#: sag scales ~ 1/E, so 2 kPa gives roughly 25 mm prone to supine.
+E_BREAST = 2.0
+#: Muscle / chest wall, kPa (paper).
+E_MUSCLE = 10.0
+NU = 0.49
+
+
+def _frozen(d: dict) -> MappingProxyType:
+    return MappingProxyType({k: (_frozen(v) if isinstance(v, dict) else v) for k, v in d.items()})
+
+
+def _thaw(d) -> dict:
+    return {k: (_thaw(v) if isinstance(v, MappingProxyType | dict) else v) for k, v in d.items()}
+
+
+@dataclass(frozen=True)
+class TruthModel:
+    """Physics of a simulated phantom.
+
+    Attributes
+    ----------
+    materials : {region code: {"name": "neo_hookean" | "gent", "E": kPa, "nu": -, ["Jm"]}}
+        Codes of ``mechanics.mesh.REGIONS`` (1 breast_left, 2 muscle, 3 breast_right).
+    effects : {effect name: keyword dict}
+        Registered effects other than gravity (added per position). ``"sliding"`` or
+        ``"tied"`` make the simulation split the breast-muscle interface.
+    mesh_size_mm : float
+        Target tet edge of the truth mesh, mm (finer than a fitted model's 8-10 mm).
+    name : str
+        Label recorded in the truth folder (preset name).
+    """
+
+    materials: MappingProxyType = field(default_factory=lambda: _frozen({}))
+    effects: MappingProxyType = field(default_factory=lambda: _frozen({}))
+    mesh_size_mm: float = 6.0
+    name: str = "custom"
+
+    def __post_init__(self):
+        object.__setattr__(self, "materials", _frozen(
+            {int(k): dict(v) for k, v in dict(self.materials).items()}))
+        object.__setattr__(self, "effects", _frozen(
+            {str(k): dict(v or {}) for k, v in dict(self.effects).items()}))
+        if not self.mesh_size_mm > 0:
+            raise ValueError(f"truth model: mesh_size_mm must be > 0, got {self.mesh_size_mm}")
+        if "gravity" in self.effects:
+            raise ValueError("truth model: gravity is set per position; remove it from effects")
+        if "sliding" in self.effects and "tied" in self.effects:
+            raise ValueError("truth model: 'sliding' and 'tied' exclude each other")
+
+    @property
+    def split_interface(self) -> bool:
+        """True when the interface nodes must be duplicated (sliding or tied contact)."""
+        return "sliding" in self.effects or "tied" in self.effects
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dict (region codes as strings)."""
+        return {
+            "name": self.name,
+            "mesh_size_mm": self.mesh_size_mm,
+            "materials": {str(k): dict(v) for k, v in self.materials.items()},
+            "effects": _thaw(self.effects),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> TruthModel:
+        return cls(materials={int(k): v for k, v in d["materials"].items()},
+                   effects=d["effects"], mesh_size_mm=float(d["mesh_size_mm"]),
+                   name=str(d.get("name", "custom")))
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
+
+
+def default_truth_model(*, mesh_size_mm: float = 6.0) -> TruthModel:
+    """The paper's model: Neo-Hookean breast (2 kPa) and muscle (10 kPa), nu 0.49, skin
+    membrane 4 kPa 2 mm, fascia 120 kPa 0.1 mm, ligaments 100 kPa, the paper's supports and
+    a tied breast-muscle interface (preset ``"sliding"``: the paper's friction 0.1)."""
+    nh = {"name": "neo_hookean", "nu": NU}
+    return TruthModel(
+        materials={
+            REGIONS["breast_left"]: {**nh, "E": E_BREAST},
+            REGIONS["muscle"]: {**nh, "E": E_MUSCLE},
+            REGIONS["breast_right"]: {**nh, "E": E_BREAST},
+        },
+        effects={
+            "supports": {},
+            "skin": {"E": 4.0, "thickness": 2.0},
+            "fascia": {"E": 120.0, "thickness": 0.1},
+            "ligaments": {"E": 100.0},
+            # The paper slides with friction 0.1; the sliding effect does not converge yet on
+            # meshed phantoms ("singular tangent" at the first step), so the default is tied
+            # and sliding is a preset.
+            "tied": {},
+        },
+        mesh_size_mm=mesh_size_mm,
+        name="default",
+    )
+
+
+#: Presets: overrides of the default effects ({effect: kwargs, or None to remove it}) and of
+#: the materials ({region code: dict}). Each changes ONE physical effect. With the default
+#: tied interface the fascia does not stretch and the ligaments stay slack in supine, so
+#: "gent_fascia" and "no_ligaments" change nothing measurable until sliding converges.
+PRESETS: dict[str, dict[str, dict]] = {
+    "default": {},
+    "sliding": {"effects": {"tied": None, "sliding": {"friction": 0.1}}},
+    "frictionless": {"effects": {"tied": None, "sliding": {"friction": 0.0}}},
+    "no_ligaments": {"effects": {"ligaments": None}},
+    "no_skin": {"effects": {"skin": None}},
+    "stiff_skin": {"effects": {"skin": {"E": 12.0, "thickness": 2.0}}},
+    "gent_fascia": {"effects": {"fascia": {"E": 120.0, "thickness": 0.1, "law": "gent",
+                                           "Jm": 0.3}}},
+    # Jm 0.1: -19 % supine displacement on the half-size anatomy at 1 kPa (Jm 1: -3 %).
+    "gent_breast": {"effects": {"strain_stiffening": {"Jm": 0.1}}},
+    "asymmetric": {"effects": {"regions": {"E_left": 0.6, "E_right": 1.5, "gland": False}}},
+}
+
+
+def with_effects(model: TruthModel, effects: dict[str, dict | None], *,
+                 materials: dict[int, dict] | None = None, name: str | None = None) -> TruthModel:
+    """Copy of ``model`` with effects replaced/added (dict) or removed (None)."""
+    eff = _thaw(model.effects)
+    for k, v in effects.items():
+        if v is None:
+            eff.pop(k, None)
+        else:
+            eff[k] = dict(v)
+    if "tied" in effects and effects["tied"] is not None:
+        eff.pop("sliding", None)
+    if "sliding" in effects and effects["sliding"] is not None:
+        eff.pop("tied", None)
+    mats = {k: dict(v) for k, v in model.materials.items()}
+    mats.update({int(k): dict(v) for k, v in (materials or {}).items()})
+    return replace(model, effects=eff, materials=mats, name=name or model.name)
+
+
+def preset(name: str, *, base: TruthModel | None = None) -> TruthModel:
+    """A named truth model: ``base`` (default :func:`default_truth_model`) with the preset's
+    overrides; several names joined by ``+`` apply in order ("no_skin+gent_breast")."""
+    model = base if base is not None else default_truth_model()
+    for part in name.split("+"):
+        if part not in PRESETS:
+            raise ValueError(f"phantom: unknown truth preset {part!r}; known: {sorted(PRESETS)}")
+        ov = PRESETS[part]
+        model = with_effects(model, ov.get("effects", {}), materials=ov.get("materials"))
+    return replace(model, name=name)
