@@ -8,7 +8,9 @@ same model, as in a fit), Newton iterations, time split, peak memory, max displa
 SfePy (P1 total-Lagrangian Neo-Hookean + bulk penalty, ScipyDirect) on the same mesh.
 
 Usage: ``python bench/gravity.py [--sizes 20k,150k] [--no-sfepy] [--E 1.0]``; writes
-``bench/results/gravity.json``.
+``bench/results/gravity.json`` (rows of solvers and sizes not run this time are kept).
+CPU times (``time.process_time``, all threads) are reported beside wall times: the machine
+is shared, and wall time follows its load.
 """
 
 from __future__ import annotations
@@ -51,17 +53,22 @@ def run_ours(n: int, E: float, nu: float, formulation: str, linear_solver: str) 
                         {"gravity": {"direction": (0, 0, -1), "density": RHO, "g": G},
                          "fixed": {"node_set": "fixed"}}, formulation=formulation)
     opt = SolverOptions(tol=1e-8, linear_solver=linear_solver)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     cold = solve(model, options=opt)
-    t_cold = time.perf_counter() - t0
-    t0 = time.perf_counter()
+    t_cold, c_cold = time.perf_counter() - t0, time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
     warm = solve(model, options=opt)
-    t_warm = time.perf_counter() - t0
-    split = {k: float(sum(e[f"t_{k}"] for e in warm.log)) for k in ("assembly", "factor",
-                                                                     "solve")}
+    t_warm, c_warm = time.perf_counter() - t0, time.process_time() - c0
+    keys = ("assembly", "factor", "solve")
+    split = {k: float(sum(e[f"t_{k}"] for e in warm.log)) for k in keys}
+    cpu_split = {k: float(sum(e.get(f"cpu_{k}", float("nan")) for e in warm.log))
+                 for k in keys}
     return {
         "solver": f"ours ({formulation}, {linear_solver})", "n_tets": mesh.n_tets,
         "n_nodes": mesh.n_nodes, "wall_cold_s": t_cold, "wall_s": t_warm,
+        "cpu_cold_s": c_cold, "cpu_s": c_warm, "cpu_split_s": cpu_split,
+        "factorizations": int(sum(e.get("factorizations", 0) for e in warm.log)),
+        "krylov_iterations": int(sum(e.get("krylov_iterations", 0) for e in warm.log)),
         "newton": warm.newton_iterations, "load_steps": warm.load_steps,
         "final_residual": float(warm.log[-1]["residuals"][-1]),
         "split_s": split, "max_disp_mm": warm.max_displacement(),
@@ -188,6 +195,11 @@ def main(argv=None) -> int:
     meta = {"problem": "hemisphere R=60 mm, flat face fixed, gravity -z, Neo-Hookean",
             "rho": RHO, "g": G, "tol": 1e-8, "febio_reference_s": {"20k": 2.4, "150k": 57.0}}
     args.out.parent.mkdir(parents=True, exist_ok=True)
+    if args.out.exists():  # keep earlier rows of solvers and sizes not run this time
+        done = {(r.get("solver"), r.get("size"), r.get("E_kPa")) for r in rows}
+        old = json.loads(args.out.read_text()).get("rows", [])
+        rows = [r for r in old if (r.get("solver"), r.get("size"), r.get("E_kPa")) not in done
+                and "error" not in r] + rows
     args.out.write_text(json.dumps({"meta": meta, "rows": rows}, indent=2) + "\n")
     print(f"wrote {args.out}")
     return 0
@@ -198,8 +210,9 @@ def _fmt(r: dict) -> str:
         return f"{r.get('size', ''):>5} {r['solver']:<28} ERROR {r['error']}"
     split = r.get("split_s", {})
     sp = " / ".join(f"{split.get(k, float('nan')):.2f}" for k in ("assembly", "factor", "solve"))
+    cpu = f"cpu {r['cpu_s']:6.2f} s " if "cpu_s" in r else ""
     return (f"{r['size']:>5} {r['solver']:<28} tets {r['n_tets']:>7} wall {r['wall_s']:7.2f} s "
-            f"(cold {r['wall_cold_s']:6.2f}) newton {r['newton']:>3} "
+            f"(cold {r['wall_cold_s']:6.2f}) {cpu}newton {r['newton']:>3} "
             f"asm/fac/sol {sp:>18} peak {r['peak_mb']:7.0f} MB max|u| {r['max_disp_mm']:.4f} mm")
 
 

@@ -73,6 +73,13 @@ def volume_measure(F, dN, V0, linear_mask, *, tangent: bool = True):
 IU, JU = np.triu_indices(12)
 A1, I1_, B1, K1 = IU // 3, IU % 3, JU // 3, JU % 3
 DIAG_COMP = (I1_ == K1).astype(float)
+#: Entries of the swapped product g_bi g_ak: row indices into a (12, M) array of g.
+SW1, SW2 = 3 * B1 + I1_, 3 * A1 + K1
+#: The 10 node pairs a <= b, and for the 30 upper entries with i == k their row and pair.
+PAIR_A, PAIR_B = np.triu_indices(4)
+DIAG_ROWS = np.flatnonzero(I1_ == K1)
+_PAIR_OF = {(int(a), int(b)): n for n, (a, b) in enumerate(zip(PAIR_A, PAIR_B, strict=True))}
+DIAG_PAIR = np.array([_PAIR_OF[(int(A1[r]), int(B1[r]))] for r in DIAG_ROWS])
 
 
 def det_inv(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

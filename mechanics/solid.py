@@ -19,9 +19,14 @@ import scipy.sparse as sp
 
 from mechanics.effects.base import MaterialSpec
 from mechanics.kernels import (
+    DIAG_PAIR,
+    DIAG_ROWS,
     IU,
     JU,
-    deformation_gradient,
+    PAIR_A,
+    PAIR_B,
+    SW1,
+    SW2,
     det_inv,
     element_force,
     element_stiffness,
@@ -33,7 +38,7 @@ from mechanics.materials import MATERIALS
 from mechanics.materials.base import IsochoricI1Material
 
 FORMULATIONS = ("anp", "standard")
-_CHUNK = 8192  # elements per block of the stiffness kernel
+_CHUNK = 2048  # elements per block of the stiffness kernel (78 x 2048 doubles: in L2)
 
 
 class InvalidConfiguration(ValueError):
@@ -107,51 +112,70 @@ class Solid:
         with np.errstate(invalid="ignore", divide="ignore"):
             self.bulk_node = np.where(self.V_node > 0, kv / self.V_node, 0.0)
         self.used_nodes = self.V_node > 0
+        self._prepare_fast_paths()
 
     # ------------------------------------------------------------------------------------
+    def _prepare_fast_paths(self) -> None:
+        """Constant data of the vectorised kernels (built once per reference configuration):
+        elements of closed-form psi(I1bar) laws, the node-element incidence for sums over
+        the tets around a node, and the constant dN_a . dN_b of every element."""
+        M = len(self.tets)
+        i1 = [(law, idx) for law, idx in self.groups if isinstance(law, IsochoricI1Material)]
+        self.generic_groups = [(law, idx) for law, idx in self.groups
+                               if not isinstance(law, IsochoricI1Material)]
+        sel = np.sort(np.concatenate([idx for _, idx in i1])) if i1 else np.zeros(0, np.int64)
+        self.i1_all = len(sel) == M
+        self.i1_sel = slice(None) if self.i1_all else sel
+        local = np.full(M, -1, np.int64)
+        local[sel] = np.arange(len(sel))
+        self.i1_groups = [(law, local[idx]) for law, idx in i1]
+        # (N, 4M) ones: nodal sums of per-(element, node) values, e.g. forces (a CSR product
+        # is several times faster than np.add.at or three bincounts).
+        self.node_sum = sp.csr_matrix(
+            (np.ones(4 * M), (self.tets.ravel(), np.arange(4 * M))), shape=(self.n_nodes, 4 * M))
+        # dN_a . dN_b for the 10 node pairs a <= b, (10, M): the constant part of the
+        # isochoric stiffness of psi(I1bar) laws.
+        self.dndn = np.einsum("maJ,maJ->am", self.dN[:, PAIR_A], self.dN[:, PAIR_B])
+
     def evaluate(self, x: np.ndarray, *, tangent: bool = True) -> SolidEval:
         """Internal forces (and element stiffness) at current positions x (N, 3) mm.
 
         Raises :class:`InvalidConfiguration` if an element is inverted or a law is undefined.
         """
         dN, V0, lin = self.dN, self.V0, self.linear_mask
-        F = deformation_gradient(x, self.tets, dN)
-        M = len(F)
+        x = np.asarray(x, dtype=np.float64)
+        M = len(V0)
+        F = np.matmul(x[self.tets].transpose(0, 2, 1), dN)  # F_iJ = x_ai dN_aJ, (M, 3, 3)
         J, Finv = det_inv(F)
-        bad = ~(J > 0.0) & ~lin
+        any_lin = bool(lin.any())
+        bad = ~(J > 0.0) & ~lin if any_lin else ~(J > 0.0)
         if np.any(bad):
             raise InvalidConfiguration(f"{int(bad.sum())} element(s) inverted (J <= 0)")
-        g = np.einsum("maJ,mJi->mai", dN, Finv)  # spatial shape-function gradients, 1/mm
+        g = np.matmul(dN, Finv)  # spatial shape-function gradients g_ai = dN_aJ Finv_Ji, 1/mm
         v = V0 * J
         dv = v[:, None, None] * g
-        any_lin = bool(lin.any())
         if any_lin:
             v = np.where(lin, V0 * (np.trace(F, axis1=1, axis2=2) - 2.0), v)
             dv = np.where(lin[:, None, None], V0[:, None, None] * dN, dv)
-        fe = np.empty((M, 4, 3))
-        P = np.empty((M, 3, 3))
-        coef = None
-        if tangent:
-            coef = {k: np.zeros(M) for k in ("gg", "sw", "fg", "dd", "qq")}
-            coef["f"] = np.zeros((M, 4, 3))
-            coef["q"] = np.zeros((M, 4, 3))
-        generic = []
+        fe = np.zeros((M, 4, 3))
+        P = np.zeros((M, 3, 3))
         energy = 0.0
-        for law, idx in self.groups:
-            if isinstance(law, IsochoricI1Material):
-                energy += self._i1_group(law, idx, F, J, Finv, g, fe, P, coef)
-            else:
-                W, P[idx], A = law.deviatoric(F[idx], tangent=tangent)
-                energy += float(np.dot(W, V0[idx]))
-                fe[idx] = element_force(P[idx], dN[idx], V0[idx])
-                if tangent:
-                    generic.append((idx, element_stiffness(A, dN[idx], V0[idx])))
-        if not np.all(np.isfinite(fe)):
+        co = None
+        if len(self.i1_groups):
+            energy += self._i1_laws(F, J, Finv, g, fe, P, tangent)
+            co = self._i1_coef
+        generic = []
+        for law, idx in self.generic_groups:
+            W, P[idx], A = law.deviatoric(F[idx], tangent=tangent)
+            energy += float(np.dot(W, V0[idx]))
+            fe[idx] = element_force(P[idx], dN[idx], V0[idx])
+            if tangent:
+                generic.append((idx, element_stiffness(A, dN[idx], V0[idx])))
+        if not np.isfinite(fe.sum()):
             raise InvalidConfiguration("a material law is undefined at this strain "
                                        "(e.g. beyond the Gent limit)")
         if self.formulation == "anp":
-            v_node = np.bincount(self.tets.ravel(), weights=np.repeat(v / 4.0, 4),
-                                 minlength=self.n_nodes)
+            v_node = self.node_sum @ np.repeat(0.25 * v, 4)
             Jbar = np.ones(self.n_nodes)
             u = self.used_nodes
             Jbar[u] = v_node[u] / self.V_node[u]
@@ -163,52 +187,81 @@ class Solid:
             p_elem = self.bulk_elem * (v / V0 - 1.0)
             energy += float(0.5 * np.dot(self.bulk_elem * V0, (v / V0 - 1.0) ** 2))
         fe += p_elem[:, None, None] * dv
-        force = np.zeros((self.n_nodes, 3))
-        _scatter(force, self.tets, fe)
+        force = self.node_sum @ fe.reshape(4 * M, 3)
         Kup = None
         if tangent:
             # Geometric stiffness of the volume: p d2v/dx2 = p v (g_ai g_bk - g_ak g_bi).
             pv = p_elem * v * ~lin if any_lin else p_elem * v
-            coef["gg"] += pv
-            coef["sw"] -= pv
+            c_gg, c_sw = pv.copy(), -pv
             if self.formulation == "standard":
-                coef["gg"] += self.bulk_elem * V0 * J * J * ~lin
-            Kup = np.empty((M, 78))
-            for s in range(0, M, _CHUNK):  # bounded temporaries (M x 144) and cache reuse
+                c_gg += self.bulk_elem * V0 * J * J * ~lin
+            sel = self.i1_sel
+            if co is not None:
+                c_gg[sel] += co["gg"]
+                c_sw[sel] += co["sw"]
+            KT = np.empty((78, M))  # upper triangles, element index last (fast gathers)
+            gT = np.ascontiguousarray(g.reshape(M, 12).T)
+            fT = qT = None
+            if co is not None:
+                fT = np.zeros((12, M))
+                fT[:, sel] = co["f"].reshape(-1, 12).T
+                c_fg, c_dd = np.zeros(M), np.zeros(M)
+                c_fg[sel], c_dd[sel] = co["fg"], co["dd"]
+                if co["qq"] is not None:
+                    qT, c_qq = np.zeros((12, M)), np.zeros(M)
+                    qT[:, sel] = co["q"].reshape(-1, 12).T
+                    c_qq[sel] = co["qq"]
+            for s in range(0, M, _CHUNK):  # bounded temporaries, cache reuse
                 e = min(M, s + _CHUNK)
-                Kup[s:e] = _stiffness_upper(g[s:e], {k: c[s:e] for k, c in coef.items()},
-                                            dN[s:e])
+                gc = gT[:, s:e]
+                h = c_gg[s:e] * gc
+                if fT is not None:
+                    fc = fT[:, s:e]
+                    h += c_fg[s:e] * fc
+                K = gc[IU] * h[JU]
+                K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
+                if fT is not None:
+                    K += fc[IU] * (c_fg[s:e] * gc)[JU]
+                    K[DIAG_ROWS] += (c_dd[s:e] * self.dndn[:, s:e])[DIAG_PAIR]
+                if qT is not None:
+                    qc = qT[:, s:e]
+                    K += qc[IU] * (c_qq[s:e] * qc)[JU]
+                KT[:, s:e] = K
+            Kup = KT.T  # (M, 78) view
             for idx, K12 in generic:
                 Kup[idx] += K12[:, IU, JU]
-            if lin.any() and self.formulation == "standard":
+            if any_lin and self.formulation == "standard":
                 Kup[lin] += (self.bulk_elem / V0)[lin, None] * upper_outer(dv, dv)[lin]
-            if not np.all(np.isfinite(Kup)):
+            if not np.isfinite(KT.sum()):
                 raise InvalidConfiguration("the tangent is not finite")
         return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
 
-    def _i1_group(self, law, idx, F, J, Finv, g, fe, P, coef) -> float:
-        """Closed-form force of a psi(I1bar) law on elements ``idx``; stores the stiffness
-        coefficients (of g g, the index-swapped g g, f g + g f, D I and q q) in ``coef``."""
-        Fi, dNi, V0 = F[idx], self.dN[idx], self.V0[idx]
-        gi = g[idx]
-        I1 = np.einsum("mij,mij->m", Fi, Fi)
-        a = np.cbrt(J[idx]) ** -2
-        W, d1, d2 = law.psi(a * I1)
-        f = np.einsum("miJ,maJ->mai", Fi, dNi)  # F dN_a
-        q = a[:, None, None] * (2.0 * f - (2.0 / 3.0) * I1[:, None, None] * gi)  # dI1bar.dN_a
-        fe[idx] = (V0 * d1)[:, None, None] * q
-        H = Finv[idx].transpose(0, 2, 1)
-        P[idx] = (d1 * a)[:, None, None] * (2.0 * Fi - (2.0 / 3.0) * I1[:, None, None] * H)
-        if coef is not None:
+    def _i1_laws(self, F, J, Finv, g, fe, P, tangent: bool) -> float:
+        """Closed-form force of the psi(I1bar) laws; stores in ``self._i1_coef`` the
+        stiffness coefficients (of g g, the index-swapped g g, f g + g f, D I and q q) of
+        their elements (``self.i1_sel``)."""
+        sel = self.i1_sel
+        if not self.i1_all:
+            F, J, Finv, g = F[sel], J[sel], Finv[sel], g[sel]
+        dNi, V0 = self.dN[sel], self.V0[sel]
+        I1 = np.einsum("mij,mij->m", F, F)
+        a = np.cbrt(J) ** -2
+        I1bar = a * I1
+        W, d1, d2 = np.empty_like(I1), np.empty_like(I1), np.empty_like(I1)
+        for law, idx in self.i1_groups:
+            W[idx], d1[idx], d2[idx] = law.psi(I1bar[idx])
+        f = np.matmul(dNi, F.transpose(0, 2, 1))  # f_ai = F_iJ dN_aJ
+        q = a[:, None, None] * (2.0 * f - (2.0 / 3.0) * I1[:, None, None] * g)  # dI1bar/dx_ai
+        fe[sel] = (V0 * d1)[:, None, None] * q
+        P[sel] = (d1 * a)[:, None, None] * (2.0 * F - (2.0 / 3.0) * I1[:, None, None]
+                                            * Finv.transpose(0, 2, 1))
+        self._i1_coef = None
+        if tangent:
             al = V0 * d1 * a
-            coef["gg"][idx] = 4.0 / 9.0 * al * I1
-            coef["sw"][idx] = 2.0 / 3.0 * al * I1
-            coef["fg"][idx] = -4.0 / 3.0 * al
-            coef["dd"][idx] = 2.0 * al
-            coef["f"][idx] = f
-            if np.any(d2):
-                coef["qq"][idx] = V0 * d2
-                coef["q"][idx] = q
+            has_qq = bool(np.any(d2))
+            self._i1_coef = {"gg": 4.0 / 9.0 * al * I1, "sw": 2.0 / 3.0 * al * I1,
+                             "fg": -4.0 / 3.0 * al, "dd": 2.0 * al, "f": f,
+                             "qq": V0 * d2 if has_qq else None, "q": q}
         return float(np.dot(W, V0))
 
     def cauchy_stress(self, ev: SolidEval) -> np.ndarray:
@@ -243,33 +296,3 @@ class Solid:
         cols = np.tile(self.tets, (1, 12)).ravel()
         vals = np.repeat(ev.dv.reshape(M, 12) / 4.0, 4, axis=1).ravel()
         return sp.coo_matrix((vals, (rows, cols)), shape=(3 * self.n_nodes, self.n_nodes)).tocsr()
-
-
-def _stiffness_upper(g, c, dN) -> np.ndarray:
-    """(M, 78) upper triangles of sum of the closed-form stiffness terms.
-
-    K[(a,i),(b,k)] = c_gg g_ai g_bk + c_sw g_bi g_ak + c_fg (f_ai g_bk + g_ai f_bk)
-                     + c_dd (dN_a . dN_b) delta_ik + c_qq q_ai q_bk
-    """
-    M = len(g)
-    gg = g[:, :, :, None, None] * g[:, None, None, :, :]  # (M, 4, 3, 4, 3)
-    K = c["gg"][:, None, None, None, None] * gg
-    K += c["sw"][:, None, None, None, None] * gg.transpose(0, 1, 4, 3, 2)
-    fg = c["f"][:, :, :, None, None] * g[:, None, None, :, :]
-    fg += fg.transpose(0, 3, 4, 1, 2)
-    K += c["fg"][:, None, None, None, None] * fg
-    D = np.einsum("maJ,mbJ->mab", dN, dN) * c["dd"][:, None, None]
-    for i in range(3):
-        K[:, :, i, :, i] += D
-    if np.any(c["qq"]):
-        q = c["q"]
-        K += c["qq"][:, None, None, None, None] * (q[:, :, :, None, None] * q[:, None, None, :, :])
-    return K.reshape(M, 144)[:, IU * 12 + JU]
-
-
-def _scatter(force: np.ndarray, tets: np.ndarray, fe: np.ndarray) -> None:
-    """force[tets] += fe with bincount (much faster than np.add.at)."""
-    n = len(force)
-    idx = tets.ravel()
-    for i in range(3):
-        force[:, i] += np.bincount(idx, weights=fe[:, :, i].ravel(), minlength=n)

@@ -73,8 +73,10 @@ class ReducedSystem:
         n_uu = int(keep_uu.sum())
         n_up = 0 if self.keep_up is None else int(self.keep_up.sum())
         # Full-length maps; dropped (constrained) entries go to a spare slot at index nnz.
-        self.map_uu = np.full(keep_uu.size, self.nnz, np.int64)
-        self.map_uu[keep_uu.ravel()] = inv[:n_uu]
+        map_uu = np.full(keep_uu.size, self.nnz, np.int64)
+        map_uu[keep_uu.ravel()] = inv[:n_uu]
+        self.map_uu_t = np.ascontiguousarray(map_uu.reshape(M, 78).T).ravel()
+        del map_uu
         if self.keep_up is not None:
             self.map_up = np.full(self.keep_up.size, self.nnz, np.int64)
             self.map_up[self.keep_up.ravel()] = inv[n_uu:n_uu + n_up]
@@ -84,7 +86,10 @@ class ReducedSystem:
                  pp_diag: np.ndarray | None = None) -> sp.csr_matrix:
         """Upper triangle (csr, n x n) from element stiffness (M,78), dv (M,4,3) and the
         pressure block diagonal (n_p,) (negative compliance -V/K)."""
-        data = np.bincount(self.map_uu, weights=Kup.ravel(), minlength=self.nnz + 1)
+        # The solid stores Kup as (78, M) (element index last), so the map is kept in that
+        # order: no copy of Kup here.
+        data = np.bincount(self.map_uu_t, weights=np.ascontiguousarray(Kup.T).ravel(),
+                           minlength=self.nnz + 1)
         if self.pidx is not None:
             M = len(Kup)
             g = np.repeat(dv.reshape(M, 12) * 0.25, 4, axis=1)
