@@ -40,7 +40,9 @@ class Gravity(Effect):
 
     def nodal_weight(self, X: np.ndarray) -> np.ndarray:
         """(N, 3) external force at full load, mN (rho g in mN/mm^3 = kg/m^3 * m/s^2 * 1e-6)."""
-        if self._cache is not None and self._cache[0] is X:
+        # The solver may hand over a fresh copy of the same X each call: compare values
+        # (O(N)), which is far cheaper than recomputing the tet volumes.
+        if self._cache is not None and (self._cache[0] is X or np.array_equal(self._cache[0], X)):
             return self._cache[1]
         mesh = self.mesh
         _, V0 = reference_geometry(X, mesh.tets)
@@ -53,7 +55,7 @@ class Gravity(Effect):
         per_node = np.bincount(mesh.tets.ravel(), weights=np.repeat(w, 4),
                                minlength=mesh.n_nodes)
         f = per_node[:, None] * self.direction[None, :]
-        self._cache = (X, f)
+        self._cache = (np.array(X, copy=True), f)
         return f
 
     def contribute(self, X, x, load):
