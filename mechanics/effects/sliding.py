@@ -19,9 +19,15 @@ Tangential (Coulomb, k = ``friction``): at the start of each load step every poi
 anchor, a material point of the master surface (facet, barycentric coordinates), and that
 facet's normal n0. The elastic slip s = (I - n0 n0^T)(x_p - x_anchor) gives the trial force
 t = eps_T w_p s, capped at k times the compressive normal force (zero in tension):
-|t| <= k max(-f_N, 0) (return mapping). At the next step a slipping point's anchor moves so
-that the carried force sits on the cone. The tangent is exact for the frozen anchor and n0;
-it is unsymmetric while slipping (the effect then sets ``symmetric = False``).
+|t| <= k max(-f_N, 0) (return mapping), with the stick-slip corner rounded over a width
+``smoothing`` (default 0.1) of the bound (:func:`friction_law`; the full-slip force stays
+Coulomb's). The exact corner (smoothing 0) makes Newton stagnate, at any load since Coulomb
+is scale-free: stick/slip states cycle between iterations (measured: supine breast-like model,
+3.5k tets, no step converged even at load ~1/4000). An optional rounded bound at zero
+pressure (``pressure_smoothing``, kPa, :func:`friction_bound`) is off by default. At the next
+step a slipping point's anchor moves so that the carried force sits on the cone. The
+tangent is exact for the frozen anchor and n0; it is unsymmetric while slipping (the effect
+then sets ``symmetric = False``).
 State (anchors, multipliers) is reset when a step starts from x == X (a new solve).
 """
 
@@ -58,8 +64,9 @@ def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
     """Magnitude of the friction force from the trial force r and the bound b (mN).
 
     sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: a smooth minimum,
-    phi = (r - h + b sqrt(1 + sigma^2)) / 2 with h = sqrt((r - b)^2 + (sigma b)^2), which
-    is 0 at r = 0, tends to min(r, b) away from r = b and rounds the stick-slip corner over
+    phi = (r - h + a sqrt(1 + sigma^2)) / 2 with h = sqrt((r - a)^2 + (sigma a)^2) and
+    a = 2 b / (1 + sqrt(1 + sigma^2)), which is 0 at r = 0, tends to b in full slip (so
+    the sliding force is Coulomb's) and to r in stick, and rounds the stick-slip corner over
     a width ~sigma b (Newton then sees a smooth law).
 
     Returns phi, d phi / dr, phi / r (its limit at r = 0) and d phi / db.
@@ -70,14 +77,35 @@ def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
         return (phi, stick.astype(float),
                 np.where(stick, 1.0, b / np.where(r > 0, r, 1.0)), (~stick).astype(float))
     c = np.sqrt(1.0 + sigma**2)
+    scale = 2.0 / (1.0 + c)  # a = scale b: the full-slip limit a (1 + c) / 2 equals b
+    b = scale * b
     h = np.sqrt((r - b) ** 2 + (sigma * b) ** 2)
     hs = np.where(h > 0, h, 1.0)
     phi = 0.5 * (r - h + b * c)
     phi_r = np.where(h > 0, 0.5 * (1.0 - (r - b) / hs), 0.0)
     phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), 0.5 * (1.0 + 1.0 / c))
+    # r = b = 0 (the first iterate of a solve): no friction in the tangent, so the normal
+    # pressure builds up first (measured: a stick tangent there makes supine solves stagnate)
     phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
-    phi_b = np.where(h > 0, 0.5 * (c - (sigma**2 * b - (r - b)) / hs), 0.0)
+    phi_b = scale * np.where(h > 0, 0.5 * (c - (sigma**2 * b - (r - b)) / hs), 0.0)
     return phi, phi_r, phi_over_r, phi_b
+
+
+def friction_bound(fN: np.ndarray, w: np.ndarray, k: float, p_eps: float):
+    """Friction bound b (P,) mN from the normal force fN (P,) mN (< 0 in compression) and
+    its derivative d b / d fN.
+
+    p_eps = 0: Coulomb, b = k max(-fN, 0), kinked at fN = 0. p_eps > 0 (kPa): a smooth
+    ramp, b = k (-fN + sqrt(fN^2 + (w p_eps)^2)) / 2, which differs from the Coulomb bound
+    by at most k w p_eps / 2 (at fN = 0) and by k w p_eps^2 / (4 p) at a pressure p, so it
+    changes nothing where the pressure is well above p_eps but gives Newton a continuous
+    tangent where the no-separation interface passes from compression to tension.
+    """
+    if p_eps == 0.0:
+        comp = fN < 0.0
+        return k * np.where(comp, -fN, 0.0), np.where(comp, -k, 0.0)
+    h = np.sqrt(fN**2 + (w * p_eps) ** 2)
+    return 0.5 * k * (h - fN), 0.5 * k * (fN / h - 1.0)
 
 
 class _InterfaceContact(Effect):
@@ -115,8 +143,10 @@ class Sliding(_InterfaceContact):
         Param("penalty", "kPa/mm", 100.0, 1e-3, 1e7, "normal penalty stiffness per area"),
         Param("tangential_penalty", "kPa/mm", 100.0, 1e-3, 1e7,
               "tangential (stick) penalty stiffness per area"),
-        Param("smoothing", "-", 0.0, 0.0, 1.0,
+        Param("smoothing", "-", 0.1, 0.0, 1.0,
               "width of the rounded stick-slip transition, fraction of the friction bound"),
+        Param("pressure_smoothing", "kPa", 0.0, 0.0, 10.0,
+              "width of the rounded friction bound at zero contact pressure"),
     )
 
     def __init__(self, mesh, **values):
@@ -216,10 +246,13 @@ class Sliding(_InterfaceContact):
         if self.anchor_facet is None:
             self._set_anchors(x, self.contact_points(x))
         s, t, _ = self._trial(X, x)
-        bound = self.values["friction"] * np.maximum(-self._normal(X, x, hessian=False)[4], 0.0)
+        bound = self._bound(self._normal(X, x, hessian=False)[4], self.weights(X))[0]
         r = np.linalg.norm(t, axis=1)
         _, _, phi_over_r, _ = friction_law(r, bound, self.values["smoothing"])
         return s, t * phi_over_r[:, None], r <= bound
+
+    def _bound(self, fN, w):
+        return friction_bound(fN, w, self.values["friction"], self.values["pressure_smoothing"])
 
     def _set_anchors(self, x, points):
         facet, bary, _ = closest_facets(points, x, self.master, k=self.k_search)
@@ -239,7 +272,7 @@ class Sliding(_InterfaceContact):
             return
         fN = self._normal(X, x, hessian=False)[4]
         s, t, _ = self._trial(X, x)
-        bound = self.values["friction"] * np.maximum(-fN, 0.0)
+        bound = self._bound(fN, self.weights(X))[0]
         r = np.linalg.norm(t, axis=1)
         _, _, phi_over_r, _ = friction_law(r, bound, self.values["smoothing"])
         slip = phi_over_r < 1.0 - 1e-12
@@ -287,7 +320,7 @@ class Sliding(_InterfaceContact):
             P0 = np.eye(3) - np.einsum("si,sj->sij", n0, n0)
             epsT = self.values["tangential_penalty"] * w
             dtt = epsT[:, None, None] * (P0 @ B)  # d t_trial / dq
-            bound = k_fric * np.maximum(-fN, 0.0)
+            bound, bound_f = self._bound(fN, w)
             r = np.linalg.norm(t, axis=1)
             sh = t / np.where(r > 0, r, 1.0)[:, None]
             phi, phi_r, phi_over_r, phi_b = friction_law(r, bound, self.values["smoothing"])
@@ -297,9 +330,9 @@ class Sliding(_InterfaceContact):
             ss = np.einsum("si,sj->sij", sh, sh)
             Dt = phi_r[:, None, None] * ss + phi_over_r[:, None, None] * (np.eye(3) - ss)
             blocks.append(coo_blocks(dofT, dofT, B.transpose(0, 2, 1) @ (Dt @ dtt)))
-            comp = (fN < 0.0) & (phi_b != 0.0)
+            comp = (bound_f != 0.0) & (phi_b != 0.0)
             if np.any(comp):
-                db = -k_fric * (eps * w)[:, None] * dgf  # d bound / dq on the normal dofs
+                db = (bound_f * eps * w)[:, None] * dgf  # d bound / dq on the normal dofs
                 dt_n = phi_b[:, None, None] * np.einsum("si,sj->sij", sh, db)
                 K_tn = B[comp].transpose(0, 2, 1) @ dt_n[comp]
                 blocks.append(coo_blocks(dofT[comp], dofN[comp], K_tn))

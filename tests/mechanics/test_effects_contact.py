@@ -41,12 +41,14 @@ def materials(E_lower, E_upper, nu=0.3):
             1: {"name": "neo_hookean", "E": E_upper, "nu": nu}}
 
 
+@pytest.mark.parametrize("smoothing", [0.0, 0.1])
 @pytest.mark.parametrize("tan_a", [0.05, 0.09, 0.11, 0.2])
-def test_block_on_incline_sticks_below_and_slides_above_friction(tan_a):
+def test_block_on_incline_sticks_below_and_slides_above_friction(tan_a, smoothing):
     """A stiff block on a plane, gravity tilted by a (tan a vs k = 0.1), held uphill by a
     soft tension-only cable. Sticking (tan a < k): friction carries the downhill load, the
     cable stays (almost) slack. Sliding (tan a > k): the cable carries W (sin a - k cos a)
-    and the block slides by that force over the cable stiffness EA/L (closed form, 1%)."""
+    and the block slides by that force over the cable stiffness EA/L (closed form, 1%).
+    Exact Coulomb corner (smoothing 0) and the default rounded corner (0.1) alike."""
     k = 0.1
     anchor = np.array([[-20.0, 5.0, 4.0]])  # orphan node: held fixed by the solver
     mesh = stack(((12, 3, 1), (60.0, 15.0, 4.0), (-30.0, -2.5, 0.0)),
@@ -62,7 +64,8 @@ def test_block_on_incline_sticks_below_and_slides_above_friction(tan_a):
     model = build_model(mesh, materials(1e3, 1e3), {
         "fixed": {"node_set": "bottom"},
         "gravity": {"direction": (np.sin(a), 0.0, -np.cos(a)), "density": density},
-        "sliding": {"friction": k, "penalty": 1e3, "tangential_penalty": 1e3},
+        "sliding": {"friction": k, "penalty": 1e3, "tangential_penalty": 1e3,
+                    "smoothing": smoothing},
         "ligaments": {"E": E_cable, "area": area},
     })
     st = solve(model, options=SolverOptions(tol=1e-9, linear_solver="scipy", initial_steps=4))

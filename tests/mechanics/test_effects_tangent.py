@@ -153,6 +153,44 @@ def test_sliding_tangent(split, friction, shift, points, smoothing):
     assert _fd_check(eff, X, x2, dofs) < TOL
 
 
+@pytest.mark.parametrize("smoothing", [0.0, 0.2])
+def test_sliding_tangent_smooth_bound_across_zero_pressure(split, smoothing):
+    """Regularised friction bound (pressure_smoothing): the normal gap changes sign along x,
+    so contact points in compression, near zero pressure and in tension are all present;
+    the coupling of friction to the smoothed pressure must be in the tangent."""
+    rng = np.random.default_rng(6)
+    eff = EFFECTS["sliding"](split, friction=0.3, penalty=50.0, tangential_penalty=20.0,
+                             smoothing=smoothing, pressure_smoothing=1.0)
+    X, x, breast = _contact_state(split, rng)
+    x[breast, 1] -= 0.05
+    span = np.ptp(X[:, 0])
+    x[breast, 1] += 0.05 * np.sin(2 * np.pi * (X[breast, 0] - X[:, 0].min()) / span)
+    eff.begin_step(X, x)
+    x2 = x.copy()
+    x2[breast, 0] += 0.1
+    p = eff.pressure(X, x2)
+    assert (p > 1.0).any() and (p < -1.0).any() and (np.abs(p) < 1.0).any()
+    dofs = _active_dofs(np.concatenate([eff.slaves, np.unique(eff.master)]), rng, 24)
+    assert _fd_check(eff, X, x2, dofs) < TOL
+
+
+def test_friction_bound_smooth_ramp():
+    """The smoothed bound is within k w p_eps / 2 of Coulomb's, exact far from p = 0, and
+    its derivative matches finite differences."""
+    from mechanics.effects.sliding import friction_bound
+
+    fN = np.linspace(-5.0, 5.0, 101)
+    w = np.full_like(fN, 2.0)
+    b0, _ = friction_bound(fN, w, 0.1, 0.0)
+    b, db = friction_bound(fN, w, 0.1, 0.5)
+    assert np.all(b >= b0) and np.abs(b - b0).max() <= 0.1 * 2.0 * 0.5 / 2 + 1e-15
+    far = np.abs(fN) > 4.0
+    assert np.abs(b - b0)[far].max() <= 0.1 * (2.0 * 0.5) ** 2 / (4 * 4.0)
+    h = 1e-6
+    fd = (friction_bound(fN + h, w, 0.1, 0.5)[0] - friction_bound(fN - h, w, 0.1, 0.5)[0]) / 2 / h
+    np.testing.assert_allclose(db, fd, atol=1e-8)
+
+
 def test_sliding_augmented_tangent(split):
     rng = np.random.default_rng(5)
     eff = EFFECTS["sliding"](split, method="augmented", friction=0.0)

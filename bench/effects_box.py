@@ -1,0 +1,128 @@
+"""Benchmark: does the paper-like model converge over the paper's parameter search box?
+
+Corners and centre of the box (breast 0.1-4 kPa, skin 1-20 kPa, fascia 80-250 kPa) in
+prone, supine and 45 deg tilted gravity, every effect on (sliding with Coulomb friction).
+Prints a table and writes ``bench/results/effects_box.json``: per point converged or not,
+load reached, Newton iterations, cut-backs, seconds, max displacement, and the convergence
+rate over the points run.
+
+Run: ``.venv/bin/python bench/effects_box.py [--cells 8,6,3,2] [--positions prone,tilted]
+[--points 0,1,8] [--max-cutbacks 8] [--sliding '{"pressure_smoothing": 0.01}']``
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mechanics.effects._breastlike import breastlike_mesh
+from mechanics.effects._interface import split_interface
+from mechanics.model import build_model
+from mechanics.solver import SolverError, SolverOptions, solve
+
+GRAVITY = {"prone": (0.0, -1.0, 0.0), "supine": (0.0, 1.0, 0.0),
+           "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0)}
+#: (breast E, skin E, fascia E) kPa: the 8 corners and the centre of the paper's search box.
+BOX = list(itertools.product((0.1, 4.0), (1.0, 20.0), (80.0, 250.0))) + [(2.05, 10.5, 165.0)]
+
+
+def paper_model(mesh, E_breast, E_skin, E_fascia, position, sliding):
+    mats = {r: {"name": "neo_hookean", "E": E_breast, "nu": 0.49} for r in (1, 3, 4, 5)}
+    mats[2] = {"name": "neo_hookean", "E": 10.0, "nu": 0.49}
+    effects = {
+        "gravity": {"direction": GRAVITY[position]},
+        "supports": {},
+        "skin": {"E": E_skin},
+        "fascia": {"E": E_fascia},
+        "ligaments": {"E": 100.0},
+        "sliding": sliding,
+        "regions": {"E_left": E_breast, "E_right": E_breast, "gland": False},
+    }
+    return build_model(mesh, mats, effects)
+
+
+def run_point(mesh, point, position, sliding, options) -> dict:
+    E_b, E_s, E_f = point
+    row = {"E_breast": E_b, "E_skin": E_s, "E_fascia": E_f, "position": position}
+    model = paper_model(mesh, E_b, E_s, E_f, position, sliding)
+    t0 = time.perf_counter()
+    try:
+        st = solve(model, options=options)
+        error = None
+    except SolverError as exc:
+        st, error = exc.state, str(exc)
+    row["seconds"] = time.perf_counter() - t0
+    row["converged"] = error is None
+    row["error"] = error
+    if st is not None:
+        row["load"] = float(st.load) if error is not None else 1.0
+        row["newton_total"] = int(sum(e["newton"] for e in st.log))
+        row["newton_converged_steps"] = [e["newton"] for e in st.log if e["converged"]]
+        row["cutbacks"] = sum(1 for e in st.log if not e["converged"])
+        row["max_displacement_mm"] = float(st.max_displacement())
+    else:
+        row.update(load=0.0, newton_total=None, cutbacks=None, max_displacement_mm=None)
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cells", default="12,8,4,2",
+                    help="nx,nz,breast layers,muscle layers of breastlike_mesh (12,8,4,2: ~4k "
+                         "tets; 8,6,3,2: ~1.4k)")
+    ap.add_argument("--positions", default="prone,supine,tilted")
+    ap.add_argument("--points", default=None,
+                    help="comma-separated indices into the 9 box points (default all)")
+    ap.add_argument("--max-newton", type=int, default=30)
+    ap.add_argument("--max-cutbacks", type=int, default=12,
+                    help="cut-backs allowed per solve (bounds the time of a failing point)")
+    ap.add_argument("--sliding", default='{"friction": 0.1}',
+                    help="JSON parameters of the sliding effect")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects_box.json"))
+    args = ap.parse_args()
+    cells = tuple(int(c) for c in args.cells.split(","))
+    positions = args.positions.split(",")
+    idx = range(len(BOX)) if args.points is None else [int(i) for i in args.points.split(",")]
+    sliding = json.loads(args.sliding)
+    options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks)
+    mesh = split_interface(breastlike_mesh(cells=cells))
+    result = {
+        "mesh": {"cells": cells, "tets": mesh.n_tets, "nodes": mesh.n_nodes},
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
+        "sliding": sliding,
+        "solver": {"max_newton": args.max_newton, "max_cutbacks": args.max_cutbacks},
+        "points": [],
+    }
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    print(f"mesh {mesh.n_tets} tets, sliding {sliding}")
+    print(f"{'breast':>6} {'skin':>5} {'fascia':>6} {'position':>8} {'ok':>3} {'load':>6} "
+          f"{'newton':>6} {'cuts':>4} {'u_max':>7} {'s':>6}")
+    for i in idx:
+        for position in positions:
+            row = run_point(mesh, BOX[i], position, sliding, options)
+            result["points"].append(row)
+            ok = result["points"]
+            result["converged"] = sum(r["converged"] for r in ok)
+            result["rate"] = result["converged"] / len(ok)
+            tmp = out.with_suffix(".json.tmp")  # after every point: an interrupted run keeps it
+            tmp.write_text(json.dumps(result, indent=1))
+            tmp.replace(out)
+            print(f"{row['E_breast']:6.2f} {row['E_skin']:5.1f} {row['E_fascia']:6.1f} "
+                  f"{position:>8} {'yes' if row['converged'] else 'NO':>3} {row['load']:6.3f} "
+                  f"{row['newton_total'] or 0:6d} {row['cutbacks'] or 0:4d} "
+                  f"{row['max_displacement_mm'] or 0:7.2f} {row['seconds']:6.1f}", flush=True)
+    print(f"converged {result['converged']} / {len(result['points'])} "
+          f"(rate {result['rate']:.2f})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
