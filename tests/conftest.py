@@ -1,5 +1,19 @@
-"""Shared fixtures: a zoo of tiny meshes lives in tests/zoo.py."""
+"""Shared fixtures. A zoo of tiny meshes lives in tests/zoo.py."""
 
 import matplotlib
+import pytest
 
 matplotlib.use("Agg")
+
+
+@pytest.fixture(scope="session")
+def mri_phantom(tmp_path_factory):
+    """Small 1 mm phantom with 15 deg / 30 mm motions, shared by the MRI tests:
+    (subject folder, truth folder)."""
+    from breastmodel.phantom import make_phantom
+
+    root = tmp_path_factory.mktemp("mri_phantom_small")
+    subject = root / "subject"
+    make_phantom(subject, seed=3, small=True, positions=("supine", "prone"),
+                 max_rotation_deg=15.0, max_translation_mm=30.0, progress=False)
+    return subject, root / "subject_truth"

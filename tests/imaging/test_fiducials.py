@@ -5,7 +5,6 @@ import json
 import numpy as np
 import pytest
 
-from breastmodel.phantom import make_phantom
 from imaging.fiducials import (
     ANATOMICAL_LABELS,
     anatomical_labels,
@@ -17,15 +16,9 @@ from imaging.subject import read_subject
 
 
 @pytest.fixture(scope="module")
-def phantom(tmp_path_factory):
-    """Small 1 mm phantom (shared by the MRI tests of this session), 15 deg / 30 mm motions."""
-    root = tmp_path_factory.getbasetemp() / "mri_phantom_small"
-    subject = root / "subject"
-    if not (subject / "subject.toml").exists():
-        make_phantom(subject, seed=3, small=True, positions=("supine", "prone"),
-                     max_rotation_deg=15.0, max_translation_mm=30.0, progress=False)
-    truth = json.loads((root / "subject_truth" / "truth.json").read_text())
-    return read_subject(subject), truth
+def phantom(mri_phantom):
+    subject, truth = mri_phantom
+    return read_subject(subject), json.loads((truth / "truth.json").read_text())
 
 
 @pytest.mark.parametrize("position", ["supine", "prone"])

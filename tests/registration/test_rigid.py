@@ -18,14 +18,8 @@ from registration.transforms import matrix_to_transform, read_transform, transfo
 
 
 @pytest.fixture(scope="module")
-def phantom(tmp_path_factory):
-    """Small 1 mm phantom (shared by the MRI tests of this session), 15 deg / 30 mm motions."""
-    root = tmp_path_factory.getbasetemp() / "mri_phantom_small"
-    subject = root / "subject"
-    if not (subject / "subject.toml").exists():
-        make_phantom(subject, seed=3, small=True, positions=("supine", "prone"),
-                     max_rotation_deg=15.0, max_translation_mm=30.0, progress=False)
-    return subject, root / "subject_truth"
+def phantom(mri_phantom):
+    return mri_phantom
 
 
 def _truth(truth_dir, ref, pos):
