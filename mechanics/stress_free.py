@@ -163,6 +163,7 @@ def paper_fixed_point(
     t0 = time.perf_counter()
     best = (np.inf, X, None)
     u = None
+    stuck = False
     for it in range(1, max_iter + 1):
         state = _forward(model, X, u, options)
         u = state.u
@@ -179,9 +180,20 @@ def paper_fixed_point(
             best = (row["mean_error"], X, state)
         if improved < min_improvement:
             break
-        X = _move(model, mover, X, active, lam * D, anchored)
+        # Impose a fraction of the correction; halve it while the moved mesh would invert.
+        step = lam
+        for _ in range(6):
+            X_next = _move(model, mover, X, active, step * D, anchored)
+            if not _inverted(model, X_next):
+                break
+            step *= 0.5
+        else:
+            log.warning("stress-free: every imposed correction inverts the mesh; stopping")
+            stuck = True
+            break
+        X = X_next
     _, X_best, s_best = best
-    converged = len(history) < max_iter
+    converged = not stuck and len(history) < max_iter
     return StressFreeResult(X_best, s_best, tuple(history), converged, "paper_fixed_point")
 
 
