@@ -15,12 +15,15 @@ import argparse
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from mechanics.effects._breastlike import breastlike_mesh
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from breastlike import breastlike_mesh  # noqa: E402
+
 from mechanics.effects._interface import split_interface
 from mechanics.model import build_model
 from mechanics.solver import SolverError, SolverOptions, solve

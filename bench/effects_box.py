@@ -17,41 +17,24 @@ import itertools
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from breastlike import breastlike_mesh, paper_model  # noqa: E402
 
-from mechanics.effects._breastlike import breastlike_mesh
 from mechanics.effects._interface import split_interface
-from mechanics.model import build_model
 from mechanics.solver import SolverError, SolverOptions, solve
 
-GRAVITY = {"prone": (0.0, -1.0, 0.0), "supine": (0.0, 1.0, 0.0),
-           "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0)}
 #: (breast E, skin E, fascia E) kPa: the 8 corners and the centre of the paper's search box.
 BOX = list(itertools.product((0.1, 4.0), (1.0, 20.0), (80.0, 250.0))) + [(2.05, 10.5, 165.0)]
-
-
-def paper_model(mesh, E_breast, E_skin, E_fascia, position, sliding):
-    mats = {r: {"name": "neo_hookean", "E": E_breast, "nu": 0.49} for r in (1, 3, 4, 5)}
-    mats[2] = {"name": "neo_hookean", "E": 10.0, "nu": 0.49}
-    effects = {
-        "gravity": {"direction": GRAVITY[position]},
-        "supports": {},
-        "skin": {"E": E_skin},
-        "fascia": {"E": E_fascia},
-        "ligaments": {"E": 100.0},
-        "sliding": sliding,
-        "regions": {"E_left": E_breast, "E_right": E_breast, "gland": False},
-    }
-    return build_model(mesh, mats, effects)
 
 
 def run_point(mesh, point, position, sliding, options) -> dict:
     E_b, E_s, E_f = point
     row = {"E_breast": E_b, "E_skin": E_s, "E_fascia": E_f, "position": position}
-    model = paper_model(mesh, E_b, E_s, E_f, position, sliding)
+    model = paper_model(mesh, E_b, E_s, E_f, position, sliding=sliding)
     t0 = time.perf_counter()
     try:
         st = solve(model, options=options)

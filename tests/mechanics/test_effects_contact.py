@@ -3,9 +3,9 @@ no-separation interface under a pulling load."""
 
 import numpy as np
 import pytest
+from breastlike import boundary_faces
 from zoo import box
 
-from mechanics.effects._breastlike import boundary_faces
 from mechanics.mesh import Mesh
 from mechanics.model import build_model
 from mechanics.solver import SolverOptions, solve

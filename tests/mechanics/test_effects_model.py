@@ -2,34 +2,10 @@
 
 import numpy as np
 import pytest
+from breastlike import breastlike_mesh, paper_model
 
-from mechanics.effects._breastlike import breastlike_mesh
 from mechanics.effects._interface import split_interface
-from mechanics.model import build_model
 from mechanics.solver import solve
-
-GRAVITY = {"prone": (0.0, -1.0, 0.0), "supine": (0.0, 1.0, 0.0),
-           "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0)}
-
-
-def paper_model(mesh, E_breast, E_skin, E_fascia, position, **changes):
-    mats = {r: {"name": "neo_hookean", "E": E_breast, "nu": 0.49} for r in (1, 3, 4, 5)}
-    mats[2] = {"name": "neo_hookean", "E": 10.0, "nu": 0.49}
-    effects = {
-        "gravity": {"direction": GRAVITY[position]},
-        "supports": {},
-        "skin": {"E": E_skin},
-        "fascia": {"E": E_fascia},
-        "ligaments": {"E": 100.0},
-        "sliding": {"friction": 0.1},
-        "regions": {"E_left": E_breast, "E_right": E_breast, "gland": False},
-    }
-    for k, v in changes.items():
-        if v is None:
-            effects.pop(k)
-        else:
-            effects[k] = v
-    return build_model(mesh, mats, effects)
 
 
 @pytest.fixture(scope="module")

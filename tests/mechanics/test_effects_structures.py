@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from breastlike import breastlike_mesh
 
 from mechanics.effects import EFFECTS, MaterialSpec
-from mechanics.effects._breastlike import breastlike_mesh
 from mechanics.effects._contact import skew
 from mechanics.effects._interface import split_interface
 from mechanics.effects.ligaments import cable_terms

@@ -4,9 +4,9 @@ of its residual, both checked by central finite differences (relative error < 1e
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from breastlike import breastlike_mesh
 
 from mechanics.effects import EFFECTS
-from mechanics.effects._breastlike import breastlike_mesh
 from mechanics.effects._contact import signed_gap
 from mechanics.effects._interface import split_interface
 from mechanics.mesh import Mesh

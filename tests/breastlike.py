@@ -1,4 +1,5 @@
-"""A small structured breast-like test mesh: two breast mounds on a muscle slab.
+"""A small structured breast-like test mesh (two breast mounds on a muscle slab) and the
+paper-like model on it, shared by the effects tests and benchmarks.
 
 Not a phantom of the project's subjects (the meshing stage makes those): a deterministic,
 numpy-only mesh with every set the effects read, for tests and benchmarks of mechanics.
@@ -6,30 +7,13 @@ numpy-only mesh with every set the effects read, for tests and benchmarks of mec
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
+from zoo import _KUHN, orient
 
 from mechanics.mesh import REGIONS, Mesh
+from mechanics.model import build_model
 
-_KUHN = []
-for _perm in itertools.permutations(range(3)):
-    _path, _p = [0], np.zeros(3, int)
-    for _axis in _perm:
-        _p[_axis] = 1
-        _path.append(int(_p[0] + 2 * _p[1] + 4 * _p[2]))
-    _KUHN.append(_path)
-_KUHN = np.array(_KUHN)
-# Outward faces of a positively oriented tet (a, b, c, d).
 _TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
-
-
-def _orient(nodes, tets):
-    tets = np.array(tets, np.int64)
-    e = nodes[tets[:, 1:]] - nodes[tets[:, :1]]
-    neg = np.linalg.det(e) < 0
-    tets[neg, 2], tets[neg, 3] = tets[neg, 3].copy(), tets[neg, 2].copy()
-    return tets
 
 
 def boundary_faces(tets: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -89,7 +73,7 @@ def breastlike_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
                                                np.arange(nm + nb), indexing="ij"))
     corner = np.stack([idx[i + a, k + b, m + cc] for cc in (0, 1) for b in (0, 1)
                        for a in (0, 1)], axis=1)
-    tets = _orient(nodes, corner[:, _KUHN].reshape(-1, 4))
+    tets = orient(nodes, corner[:, _KUHN].reshape(-1, 4))
     layer_of_tet = np.repeat(m, 6)
     cen = nodes[tets].mean(axis=1)
     region = np.where(layer_of_tet < nm, REGIONS["muscle"],
@@ -133,3 +117,29 @@ def breastlike_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
     return Mesh(nodes, tets, region, node_sets=node_sets,
                 face_sets={"skin": skin, "interface": interface},
                 node_pairs={f"ligament_{g}": np.array(p) for g, p in pairs.items()})
+
+
+GRAVITY = {"prone": (0.0, -1.0, 0.0), "supine": (0.0, 1.0, 0.0),
+           "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0)}
+
+
+def paper_model(mesh, E_breast, E_skin, E_fascia, position, **changes):
+    """The paper's model (all effects) on ``mesh``; ``changes`` replace effect tables, None
+    drops one. Moduli in kPa; ``position`` a key of ``GRAVITY``."""
+    mats = {r: {"name": "neo_hookean", "E": E_breast, "nu": 0.49} for r in (1, 3, 4, 5)}
+    mats[2] = {"name": "neo_hookean", "E": 10.0, "nu": 0.49}
+    effects = {
+        "gravity": {"direction": GRAVITY[position]},
+        "supports": {},
+        "skin": {"E": E_skin},
+        "fascia": {"E": E_fascia},
+        "ligaments": {"E": 100.0},
+        "sliding": {"friction": 0.1},
+        "regions": {"E_left": E_breast, "E_right": E_breast, "gland": False},
+    }
+    for k, v in changes.items():
+        if v is None:
+            effects.pop(k)
+        else:
+            effects[k] = v
+    return build_model(mesh, mats, effects)
