@@ -16,4 +16,5 @@ COMMANDS = (
     "run",
     "fit",
     "sweep",
+    "compare",
 )
