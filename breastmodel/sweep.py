@@ -208,7 +208,8 @@ def run_sweep(fn: Callable[[dict], Mapping], points: Sequence[Mapping[str, Any]]
         :class:`distributed.LocalCluster` of processes, closed at the end.
     n_workers, threads_per_worker : int
         Size of the local cluster (ignored with ``scheduler``). The nannies pin BLAS/OpenMP to
-        one thread per worker.
+        one thread per worker. ``n_workers=0``: no cluster, the points run one after the
+        other in this process (same storage and resume; no protection from a crash of fn).
     progress : bool
         Show a tqdm progress bar on stderr.
     retries : int
@@ -248,6 +249,12 @@ def run_sweep(fn: Callable[[dict], Mapping], points: Sequence[Mapping[str, Any]]
     folder = _points_dir(out_dir)
     folder.mkdir(parents=True, exist_ok=True)
     n_now = 0
+    if todo and scheduler is None and n_workers == 0:
+        for k, p in tqdm(todo.items(), desc="sweep", unit="point", disable=not progress):
+            stored[k] = _evaluate(fn, p, k)
+            write_json(folder / f"{k}.json", stored[k])
+            n_now += 1
+        todo = {}
     if todo:
         cluster = None
         if scheduler is None:

@@ -11,10 +11,11 @@
 from breastmodel.pipeline.config import load_run_config, resolve_config
 from breastmodel.pipeline.fit import fit_parameters, grid_search, optimise, sensitivity
 from breastmodel.pipeline.problem import evaluate_params, load_problem, sweep_point
-from breastmodel.pipeline.run import RunResult, prepare_subject, run_subject
+from breastmodel.pipeline.run import RunResult, prepare_subject, run_problem, run_subject
 
 __all__ = [
     "RunResult", "evaluate_params", "fit_parameters", "grid_search", "load_problem",
-    "load_run_config", "optimise", "prepare_subject", "resolve_config", "run_subject",
+    "load_run_config", "optimise", "prepare_subject", "resolve_config", "run_problem",
+    "run_subject",
     "sensitivity", "sweep_point",
 ]

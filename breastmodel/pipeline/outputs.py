@@ -27,12 +27,11 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
     ``out/report.html``. Returns the metrics dict.
     """
     from breastmodel.config import write_json
-    from breastmodel.pipeline.problem import load_problem
+    from breastmodel.pipeline.problem import load_problem, mesh_of
     from breastmodel.pipeline.report import write_report
     from meshing.export import write_ply
 
     problem = load_problem(problem_dir)
-    faces = np.asarray(problem.mesh.face_sets["skin"])
     sf = json.loads((sf_dir / "stress_free.json").read_text())
     metrics: dict[str, Any] = {"subject": subject_id, "reference": problem.reference,
                                "units": "mm", "positions": {},
@@ -46,6 +45,7 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
                                         else {})}
         with np.load(d / "predicted.npz") as z:
             x, err, nodes = z["x"], z["signed_error"], z["skin_nodes"]
+        faces = np.asarray(mesh_of(problem, len(x)).face_sets["skin"])
         remap = np.full(len(x), -1, np.int64)
         remap[nodes] = np.arange(len(nodes))
         write_ply(x[nodes], remap[faces], out / f"{pos}_predicted.ply")

@@ -15,7 +15,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +26,8 @@ from breastmodel.pipeline.config import materials_by_code, set_params
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = [
-    "Problem", "evaluate_params", "landmark_barycentric", "load_problem", "position_model",
+    "Problem", "evaluate_params", "landmark_barycentric", "load_problem", "mesh_of", "model_mesh",
+    "position_model", "skin_nodes",
     "predict_position", "score_position", "skin_node_regions", "solver_options",
     "stress_free_geometry",
 ]
@@ -46,6 +47,49 @@ class Problem:
     skins: Mapping[str, tuple[np.ndarray, np.ndarray]]
     landmarks: Mapping[str, Mapping[str, np.ndarray]]
     reference: str
+    _split: dict = field(default_factory=dict, repr=False)  # the split mesh, made once
+
+
+#: Effects that need the breast-muscle interface split into two node layers.
+INTERFACE_EFFECTS = ("sliding", "tied")
+
+
+def model_mesh(problem: Problem, model: Mapping[str, Any]):
+    """The mesh a model runs on: the problem's conforming mesh, or (when the model has a
+    ``sliding`` or ``tied`` interface) the same mesh with the interface nodes duplicated,
+    the breast copies appended after the original nodes at the same positions."""
+    names = {str(k).split(":", 1)[0] for k in model["effects"]}
+    if not names & set(INTERFACE_EFFECTS) or "interface_muscle" in problem.mesh.face_sets:
+        return problem.mesh
+    if "mesh" not in problem._split:
+        from mechanics.effects._interface import split_interface
+
+        problem._split["mesh"] = split_interface(problem.mesh)
+    return problem._split["mesh"]
+
+
+def skin_nodes(problem: Problem, n_nodes: int) -> np.ndarray:
+    """Skin node indices in one canonical order (that of the conforming mesh), mapped into
+    the mesh with ``n_nodes`` nodes: residuals of conforming and split models line up."""
+    nodes = np.unique(np.asarray(problem.mesh.face_sets["skin"]))
+    if n_nodes == problem.mesh.n_nodes:
+        return nodes
+    mesh_of(problem, n_nodes)  # checks the count
+    shared = np.unique(np.asarray(problem.mesh.face_sets["interface"]))
+    new_id = np.arange(problem.mesh.n_nodes)
+    new_id[shared] = problem.mesh.n_nodes + np.arange(len(shared))
+    return new_id[nodes]
+
+
+def mesh_of(problem: Problem, n_nodes: int):
+    """The problem mesh (conforming or split) that has ``n_nodes`` nodes."""
+    if n_nodes == problem.mesh.n_nodes:
+        return problem.mesh
+    split = model_mesh(problem, {"effects": {"sliding": {}}})
+    if n_nodes != split.n_nodes:
+        raise ValueError(f"pipeline: {n_nodes} node positions fit neither the problem mesh "
+                         f"({problem.mesh.n_nodes} nodes) nor its split ({split.n_nodes})")
+    return split
 
 
 _PROBLEMS: dict[str, Problem] = {}  # per process: workers evaluate many points on one problem
@@ -90,7 +134,7 @@ def position_model(problem: Problem, model: Mapping[str, Any], position: str):
     """
     from mechanics.model import build_model
 
-    mesh = problem.mesh
+    mesh = model_mesh(problem, model)
     effects = {k: v for k, v in model["effects"].items()}
     effects["gravity"] = {"direction": tuple(float(v) for v in problem.gravity[position]),
                           "density": float(model["density"]), "g": float(model["g"])}
@@ -130,7 +174,7 @@ def stress_free_geometry(problem: Problem, model: Mapping[str, Any], sf: Mapping
     from breastmodel.evaluation import TriangleSurface
     from mechanics.stress_free import inverse_fixed_point, paper_fixed_point
 
-    mesh = problem.mesh
+    mesh = model_mesh(problem, model)
     opts = solver_options(solver)
     method = sf["method"]
     if method == "none":
@@ -228,7 +272,7 @@ def score_position(problem: Problem, x: np.ndarray, position: str, *,
     )
     from mechanics.mesh import REGIONS
 
-    mesh = problem.mesh
+    mesh = mesh_of(problem, len(x))
     faces = np.asarray(mesh.face_sets["skin"])
     nodes = np.unique(faces)
     remap = np.full(mesh.n_nodes, -1, np.int64)

@@ -28,7 +28,7 @@ from breastmodel.errors import StageError
 
 log = logging.getLogger("breastmodel.pipeline")
 
-__all__ = ["Prepared", "RunResult", "prepare_subject", "run_subject"]
+__all__ = ["Prepared", "RunResult", "prepare_subject", "run_problem", "run_subject"]
 
 
 class RunResult(dict):
@@ -327,14 +327,46 @@ def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     StageError
         The first stage that meets bad input, naming the file and the problem.
     """
+    t0 = time.perf_counter()
+    prep = prepare_subject(subject_dir, cfg, out, progress=progress)
+    return _model_stages(prep, cfg, Path(out), t0)
+
+
+def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
+                subject_id: str = "problem", progress: bool = True) -> RunResult:
+    """The model half of the pipeline on a ready problem folder (mesh, gravity, measured
+    skins: see :mod:`breastmodel.pipeline.problem`): [fit] -> stress-free -> predict ->
+    outputs, cached like :func:`run_subject`. For synthetic measurements and tests."""
+    from breastmodel.config import write_provenance
+
+    t0 = time.perf_counter()
+    out, problem_dir = Path(out), Path(problem_dir)
+    meta = json.loads((problem_dir / "problem.json").read_text())
+    out.mkdir(parents=True, exist_ok=True)
+    write_provenance(out, {"subject": subject_id, **cfg}, command="run")
+    R = _Runner(out, progress)
+
+    def copy(d: Path) -> None:
+        shutil.copytree(problem_dir, d, dirs_exist_ok=True)
+    prob_dir, prob_key = R.stage("problem", {"copy_of": subject_id}, [problem_dir], copy,
+                                 label="problem (given)")
+    subject = _ProblemSubject(subject_id, meta["reference"])
+    prep = Prepared(subject, list(meta["gravity"]), R, prob_dir, prob_key)
+    return _model_stages(prep, cfg, out, t0)
+
+
+@dataclass(frozen=True)
+class _ProblemSubject:
+    id: str
+    reference: str
+
+
+def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) -> RunResult:
     from breastmodel.config import write_json
     from breastmodel.pipeline.config import get_param, set_params
     from breastmodel.pipeline.outputs import write_outputs
     from breastmodel.pipeline.problem import fit_settings
 
-    t0 = time.perf_counter()
-    out = Path(out)
-    prep = prepare_subject(subject_dir, cfg, out, progress=progress)
     subject, positions, R = prep.subject, prep.positions, prep.runner
     prob_dir, prob_key = prep.problem_dir, prep.problem_key
 

@@ -14,7 +14,12 @@ from typing import Any
 
 import numpy as np
 
-from breastmodel.pipeline.problem import load_problem, predict_position, stress_free_geometry
+from breastmodel.pipeline.problem import (
+    load_problem,
+    mesh_of,
+    predict_position,
+    stress_free_geometry,
+)
 
 __all__ = ["synthetic_problem"]
 
@@ -42,12 +47,12 @@ def synthetic_problem(problem_dir: str | Path, out: str | Path, model: Mapping[s
     shutil.copytree(problem_dir, out)
     prob = load_problem(problem_dir)
     X, _ = stress_free_geometry(prob, model, stress_free, solver)
-    faces = np.asarray(prob.mesh.face_sets["skin"])
-    nodes = np.unique(faces)
-    remap = np.full(prob.mesh.n_nodes, -1, np.int64)
-    remap[nodes] = np.arange(len(nodes))
     for pos in prob.gravity:
         x = prob.mesh.nodes if pos == prob.reference else predict_position(
             prob, model, X, pos, solver).x
+        faces = np.asarray(mesh_of(prob, len(x)).face_sets["skin"])
+        nodes = np.unique(faces)
+        remap = np.full(len(x), -1, np.int64)
+        remap[nodes] = np.arange(len(nodes))
         np.savez(out / f"{pos}_skin.npz", vertices=np.asarray(x)[nodes], triangles=remap[faces])
     return out

@@ -1,0 +1,386 @@
+"""Which physical effect is missing: score every candidate by how much of the residual it
+explains.
+
+The residual is the vector of signed node-to-surface errors of the predicted skin in every
+scored position (mm). Around the fitted model, each candidate is linearised from a few full
+model evaluations (stress-free geometry + every position, the run's own settings):
+
+    r(dtheta, a, dp) ~ r0 + J_theta dtheta + a (r_c - r0) + J_c dp
+
+with r0 the fitted model's residual, J_theta the derivatives with respect to the fitted
+parameters (log scale, finite differences), r_c the residual with the candidate switched on
+at its probe strength, a the amount of that switch-on (fixed at 1 for on/off changes), and
+J_c the derivatives with respect to the candidate's own parameters at the probe. A bounded
+linear least-squares solve gives the residual the model would have after adding the
+candidate and re-fitting everything, so candidates are compared at their best, and never
+credited for what re-fitting the existing parameters alone achieves (the baseline is the same
+solve without the candidate). The top candidates are then checked by a real (nonlinear)
+evaluation at the estimated parameters.
+
+Noise floor: with the full-field inverse the reference position is reproduced by
+construction, so its residual is what meshing and segmentation leave (the floor); otherwise
+the best-fitting position stands in for it. A candidate explains "more than the noise" when
+it lowers the residual RMS by more than a quarter of the floor (and 0.02 mm) and removes at
+least 20 % of the baseline's squared residual.
+
+Evaluations are points of a :func:`breastmodel.sweep.run_sweep` (stored atomically, resumed
+after a kill, on a local or remote dask cluster).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.diagnosis.candidates import Candidate, enumerate_candidates
+
+log = logging.getLogger("breastmodel.diagnosis")
+
+__all__ = ["evaluate_model", "rank_candidates", "SIGNIFICANT_FLOOR_FRACTION"]
+
+#: Log step of the finite differences (about 22 %).
+STEP = 0.2
+#: A candidate must lower the residual RMS by this fraction of the noise floor ...
+SIGNIFICANT_FLOOR_FRACTION = 0.25
+#: ... and by at least this much, mm ...
+SIGNIFICANT_MIN_MM = 0.02
+#: ... and remove at least this fraction of the baseline's squared residual.
+SIGNIFICANT_EXPLAINED = 0.2
+
+
+def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
+                   settings: Mapping[str, Any]) -> dict:
+    """Residuals of one model: stress-free geometry, then every position.
+
+    Parameters
+    ----------
+    model : a resolved ``[model]`` table
+    problem_dir : the run's problem folder
+    settings : ``{"solver", "stress_free", "positions"}``
+
+    Returns
+    -------
+    dict
+        ``residual`` {position: (n_skin,) signed error, mm, canonical skin-node order},
+        ``mhd_mm`` {position: mm}; raises on a failed solve (the sweep records it).
+    """
+    from breastmodel.evaluation import point_to_surface
+    from breastmodel.pipeline.problem import (
+        load_problem,
+        predict_position,
+        score_position,
+        skin_nodes,
+        stress_free_geometry,
+    )
+
+    problem = load_problem(problem_dir)
+    X, _ = stress_free_geometry(problem, model, settings["stress_free"], settings["solver"])
+    out: dict[str, Any] = {"residual": {}, "mhd_mm": {}}
+    for pos in settings["positions"]:
+        x = predict_position(problem, model, X, pos, settings["solver"]).x
+        d, _ = point_to_surface(x[skin_nodes(problem, len(x))], *problem.skins[pos],
+                                signed=True)
+        out["residual"][pos] = d
+        out["mhd_mm"][pos] = score_position(problem, x, pos)["mhd_mm"]
+    return out
+
+
+def _variant_point(point: Mapping[str, Any], *, variants: Mapping[str, dict],
+                   problem_dir: str, settings: Mapping[str, Any]) -> dict:
+    res = evaluate_model(variants[point["variant"]], problem_dir, settings)
+    return {"residual": {p: np.asarray(v).tolist() for p, v in res["residual"].items()},
+            "mhd_mm": res["mhd_mm"]}
+
+
+def _log_step(value: float, lo: float, hi: float) -> float:
+    """+STEP unless that leaves [lo, hi], then -STEP."""
+    return STEP if value * math.exp(STEP) <= hi * (1 + 1e-12) else -STEP
+
+
+def _model_hash(model: Mapping[str, Any]) -> str:
+    import hashlib
+
+    from breastmodel.cache import canonical_json
+
+    return hashlib.sha256(canonical_json(model).encode()).hexdigest()[:12]
+
+
+def _fit_bounds(cfg: Mapping[str, Any], path: str) -> tuple[float, float]:
+    spec = cfg["fit"]["parameters"][path]
+    vals = spec.get("values")
+    return (float(min(vals)), float(max(vals))) if vals else (float(spec["min"]),
+                                                             float(spec["max"]))
+
+
+def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int = 0,
+                    scheduler: str | None = None, verify_top: int = 1,
+                    candidates: Sequence[Candidate] | None = None,
+                    progress: bool = True) -> dict:
+    """Score every candidate missing effect of a finished run.
+
+    Parameters
+    ----------
+    run : :class:`breastmodel.diagnosis.RunData`
+    work_dir : where evaluations are stored (default ``run.out / "diagnosis" / "evaluations"``);
+        a rerun reuses them
+    n_workers, scheduler : the dask cluster (see :func:`breastmodel.sweep.run_sweep`; the
+        default 0 evaluates in this process)
+    verify_top : how many of the best significant candidates get a nonlinear check
+    candidates : override the enumeration (tests, or a user's own list)
+
+    Returns
+    -------
+    dict (JSON-ready)
+        ``positions`` (scored), ``objective_positions``, ``noise_floor_mm``,
+        ``baseline`` (per-position RMS now and after re-fitting alone), ``ranking`` (best
+        first: name, kind, doc, explained fraction, predicted RMS and mean |e| per position,
+        estimated parameters, significant, evidence per region, verified metrics),
+        ``skipped`` (what is not scored and why), ``failed`` (candidates whose evaluation
+        failed), ``verdict`` (one sentence).
+    """
+    from scipy.optimize import lsq_linear
+
+    from breastmodel.pipeline.config import get_param, set_params
+    from breastmodel.pipeline.problem import skin_node_regions, skin_nodes
+    from breastmodel.sweep import run_sweep
+
+    cfg, model, problem = run.config, run.model, run.problem
+    positions = list(run.positions)
+    inverse = cfg["stress_free"]["method"] == "inverse"
+    obj_pos = [p for p in positions if not (inverse and p == problem.reference)] or positions
+    settings = {"solver": cfg["solver"], "stress_free": cfg["stress_free"],
+                "positions": positions}
+    fitted = list(cfg["fit"]["parameters"]) if cfg["fit"]["enabled"] else []
+    mesh = problem.mesh
+    if candidates is None:
+        candidates, skipped = enumerate_candidates(
+            model, set(fitted), regions={int(r) for r in np.unique(mesh.region)},
+            node_pairs=set(mesh.node_pairs))
+    else:
+        skipped = []
+
+    # ---- the model variants to evaluate
+    variants: dict[str, dict] = {"base": model}
+    steps: dict[str, float] = {}
+    theta0 = {}
+    for q in fitted:
+        v = float(get_param(model, q))
+        lo, hi = _fit_bounds(cfg, q)
+        theta0[q] = v
+        steps[f"theta|{q}"] = h = _log_step(v, lo, hi)
+        variants[f"theta|{q}"] = set_params(model, {q: v * math.exp(h)})
+    cand_models: dict[str, dict] = {}
+    for c in candidates:
+        cm = set_params(c.apply(model), c.start)
+        cand_models[c.name] = cm
+        if c.effects:
+            variants[f"cand|{c.name}"] = cm
+        for f, (lo, hi) in c.free.items():
+            v = float(c.start.get(f, get_param(cm, f) or 1.0))
+            steps[f"cand|{c.name}|{f}"] = h = _log_step(v, lo, hi)
+            variants[f"cand|{c.name}|{f}"] = set_params(cm, {f: v * math.exp(h)})
+    points = [{"variant": k, "model": _model_hash(m)} for k, m in variants.items()]
+    work_dir = Path(work_dir) if work_dir else run.out / "diagnosis" / "evaluations"
+    if progress:
+        print(f"diagnose: {len(candidates)} candidates, {len(points)} model evaluations "
+              f"(stored in {work_dir})", flush=True)
+    fn = functools.partial(_variant_point, variants=variants, problem_dir=str(run.problem_dir),
+                           settings=settings)
+    recs = run_sweep(fn, points, work_dir, scheduler=scheduler, n_workers=n_workers,
+                     progress=progress)
+    res = {p["variant"]: r for p, r in zip(points, recs)}
+    if res["base"]["status"] != "ok":
+        raise RuntimeError(f"diagnose: the fitted model itself failed to solve: "
+                           f"{res['base']['error']}")
+
+    def vec(name: str, which: Sequence[str] = obj_pos) -> np.ndarray | None:
+        r = res[name]
+        if r["status"] != "ok":
+            return None
+        return np.concatenate([np.asarray(r["result"]["residual"][p], float) for p in which])
+
+    # ---- geometry of the residual vector: which entries are which position / region
+    n_skin = len(res["base"]["result"]["residual"][positions[0]])
+    nodes = skin_nodes(problem, mesh.n_nodes)
+    region_masks = _regions(problem, nodes, run.X[:mesh.n_nodes], skin_node_regions(mesh))
+    slices = {p: slice(i * n_skin, (i + 1) * n_skin) for i, p in enumerate(obj_pos)}
+
+    def rms(v):
+        return float(np.sqrt(np.mean(np.square(v)))) if len(v) else math.nan
+
+    all_base = {p: np.asarray(res["base"]["result"]["residual"][p]) for p in positions}
+    if inverse and problem.reference in all_base:
+        floor = rms(all_base[problem.reference])
+        floor_from = f"reference position {problem.reference!r} (reproduced by construction)"
+    else:
+        floor = min(rms(v) for v in all_base.values())
+        floor_from = "the best-fitting position (no position is reproduced by construction)"
+    floor = max(floor, SIGNIFICANT_MIN_MM)
+
+    r0 = vec("base")
+    J_theta, th_lo, th_hi = [], [], []
+    for q in fitted:
+        rq = vec(f"theta|{q}")
+        if rq is None:
+            continue
+        h = steps[f"theta|{q}"]
+        J_theta.append((rq - r0) / h)
+        lo, hi = _fit_bounds(cfg, q)
+        th_lo.append(math.log(lo / theta0[q]))
+        th_hi.append(math.log(hi / theta0[q]))
+
+    def solve(extra_cols, lo, hi):
+        cols = J_theta + extra_cols
+        if not cols:
+            return r0.copy(), np.zeros(0)
+        A = np.column_stack(cols)
+        lb = np.array(th_lo + lo, float)
+        ub = np.array(th_hi + hi, float)
+        ub = np.maximum(ub, lb + 1e-12)
+        sol = lsq_linear(A, -r0, bounds=(lb, ub), method="bvls")
+        return r0 + A @ sol.x, sol.x
+
+    r_base, z_base = solve([], [], [])
+    ss_base = float(r_base @ r_base)
+    rms_now = rms(r0)
+    rms_base = rms(r_base)
+
+    def per_position(r):
+        return {p: {"rms_mm": rms(r[s]), "mean_abs_mm": float(np.mean(np.abs(r[s])))}
+                for p, s in slices.items()}
+
+    def per_region(r):
+        out = {}
+        for p, s in slices.items():
+            for name, m in region_masks.items():
+                if m.any():
+                    out[f"{p}.{name}"] = rms(r[s][m])
+        return out
+
+    base_regions = per_region(r_base)
+    ranking, failed = [], []
+    for c in candidates:
+        cols, lo, hi, labels = [], [], [], []
+        rc = r0
+        if c.effects:
+            rc = vec(f"cand|{c.name}")
+            if rc is None:
+                failed.append({"name": c.name, "error": res[f"cand|{c.name}"]["error"]})
+                continue
+            shift = rc - r0
+            cols.append(shift)
+            lo.append(c.amplitude[0])
+            hi.append(c.amplitude[1])
+            labels.append("amplitude")
+        ok = True
+        for f, (flo, fhi) in c.free.items():
+            rf = vec(f"cand|{c.name}|{f}")
+            if rf is None:
+                failed.append({"name": c.name, "error": res[f"cand|{c.name}|{f}"]["error"]})
+                ok = False
+                break
+            cols.append((rf - rc) / steps[f"cand|{c.name}|{f}"])
+            v0 = float(c.start[f])
+            lo.append(math.log(flo / v0))
+            hi.append(math.log(fhi / v0))
+            labels.append(f)
+        if not ok:
+            continue
+        r_c, z = solve(cols, lo, hi)
+        ss = float(r_c @ r_c)
+        z_theta, z_c = z[:len(J_theta)], dict(zip(labels, z[len(J_theta):]))
+        est = {q: theta0[q] * math.exp(zq) for q, zq in zip(fitted, z_theta)}
+        est.update({f: float(c.start[f]) * math.exp(z_c[f]) for f in c.free})
+        explained = 1.0 - ss / ss_base if ss_base > 0 else 0.0
+        drop = rms_base - rms(r_c)
+        regions_after = per_region(r_c)
+        gains = sorted(((base_regions[k] - regions_after[k], k) for k in base_regions),
+                       reverse=True)
+        ranking.append({
+            **c.to_dict(),
+            "explained": explained,
+            "predicted_rms_mm": rms(r_c),
+            "rms_drop_mm": drop,
+            "predicted": per_position(r_c),
+            "amount": float(z_c.get("amplitude", 1.0 if c.effects else 0.0)),
+            "estimate": est,
+            "evidence": [{"where": k, "rms_before_mm": base_regions[k],
+                          "rms_after_mm": regions_after[k]} for g, k in gains[:4] if g > 0],
+            "significant": bool(drop > max(SIGNIFICANT_FLOOR_FRACTION * floor,
+                                           SIGNIFICANT_MIN_MM)
+                                and explained >= SIGNIFICANT_EXPLAINED),
+        })
+    ranking.sort(key=lambda r: r["predicted_rms_mm"])
+
+    # ---- nonlinear check of the best significant candidates
+    by_name = {c.name: c for c in candidates}
+    todo = [r for r in ranking if r["significant"]][:max(int(verify_top), 0)]
+    if todo:
+        vpoints, vvariants = [], {}
+        for r in todo:
+            c = by_name[r["name"]]
+            m = set_params(c.apply(model), {**c.start, **r["estimate"]})
+            vvariants[f"verify|{c.name}"] = m
+            vpoints.append({"variant": f"verify|{c.name}", "model": _model_hash(m)})
+        fn = functools.partial(_variant_point, variants=vvariants,
+                               problem_dir=str(run.problem_dir), settings=settings)
+        for r, rec in zip(todo, run_sweep(fn, vpoints, work_dir, scheduler=scheduler,
+                                          n_workers=n_workers, progress=progress)):
+            if rec["status"] == "ok":
+                rv = np.concatenate([np.asarray(rec["result"]["residual"][p]) for p in obj_pos])
+                r["verified"] = {"rms_mm": rms(rv), "mhd_mm": rec["result"]["mhd_mm"],
+                                 "per_position": per_position(rv)}
+            else:
+                r["verified"] = {"error": rec["error"]}
+
+    base_mhd = res["base"]["result"]["mhd_mm"]
+    sig = [r for r in ranking if r["significant"]]
+    if sig:
+        best = sig[0]
+        verdict = (f"missing effect: {best['name']} ({best['doc']}); adding it is predicted to "
+                   f"lower the residual RMS from {rms_base:.3f} to "
+                   f"{best['predicted_rms_mm']:.3f} mm ({100 * best['explained']:.0f} % of the "
+                   "squared residual explained)")
+    else:
+        worst = sorted(base_regions.items(), key=lambda kv: -kv[1])[:3]
+        carriers = ", ".join(f"{k} ({v:.2f} mm)" for k, v in worst)
+        verdict = (f"no candidate explains more than the noise (floor {floor:.3f} mm, "
+                   f"residual RMS {rms_base:.3f} mm): the residual is noise, or the missing "
+                   f"effect is not in the library; the largest residuals are at {carriers}")
+    return {
+        "positions": positions, "objective_positions": obj_pos,
+        "noise_floor_mm": floor, "noise_floor_from": floor_from,
+        "baseline": {"rms_mm": rms_now, "rms_after_refit_mm": rms_base,
+                     "per_position": per_position(r_base), "mhd_mm": base_mhd,
+                     "refit_estimate": {q: theta0[q] * math.exp(zq)
+                                        for q, zq in zip(fitted, z_base)}},
+        "fitted_parameters": fitted,
+        "ranking": ranking, "skipped": skipped, "failed": failed,
+        "n_evaluations": len(points) + len(todo), "verdict": verdict,
+    }
+
+
+def _regions(problem, nodes: np.ndarray, X: np.ndarray, node_region: np.ndarray,
+             ) -> dict[str, np.ndarray]:
+    """Boolean masks over the canonical skin nodes: the skin regions of the maps module
+    where it is available, else left / right breast."""
+    try:
+        from breastmodel.diagnosis.maps import skin_regions
+    except ImportError:
+        skin_regions = None
+    if skin_regions is not None:
+        try:
+            return {k: np.asarray(v, bool) for k, v in skin_regions(problem.mesh, X).items()}
+        except Exception as exc:  # noqa: BLE001 - regions are evidence, not the ranking
+            log.warning("diagnose: skin regions unavailable (%s); using left/right", exc)
+    from mechanics.mesh import REGIONS
+
+    reg = node_region[nodes]
+    return {"left": np.isin(reg, (REGIONS["breast_left"], REGIONS["gland_left"])),
+            "right": np.isin(reg, (REGIONS["breast_right"], REGIONS["gland_right"]))}

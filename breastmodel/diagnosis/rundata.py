@@ -1,0 +1,102 @@
+"""Read a finished ``breastmodel run`` folder back into plain arrays (what the diagnosis uses).
+
+A run folder holds ``stages.json`` (stage name, label and cache key), ``config.toml`` (the
+resolved run config), ``params.json`` (the model the predictions used) and ``metrics.json``;
+the arrays live in the stage cache: ``cache/problem/<key>/`` (mesh and measured skins),
+``cache/stress_free/<key>/X.npy`` and ``cache/predict/<key>/predicted.npz`` per position.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.errors import StageError
+
+__all__ = ["RunData", "load_run"]
+
+
+@dataclass(frozen=True, eq=False)
+class RunData:
+    """A finished run.
+
+    out : the run folder
+    config : resolved run config (``config.toml``)
+    model : the ``[model]`` table the predictions used (``params.json["model"]``; fitted
+        parameters included)
+    problem_dir : the problem stage folder
+    problem : :class:`breastmodel.pipeline.problem.Problem` (mesh, gravity, measured skins,
+        landmarks, reference; reference frame, mm)
+    X : (N, 3) stress-free node positions, mm
+    x : position -> (N, 3) predicted node positions, mm
+    metrics : ``metrics.json``
+    subject : subject id
+    """
+
+    out: Path
+    config: dict
+    model: dict
+    problem_dir: Path
+    problem: Any
+    X: np.ndarray
+    x: dict
+    metrics: dict
+    subject: str
+
+    @property
+    def positions(self) -> list[str]:
+        return list(self.x)
+
+
+def _read_json(path: Path, out: Path) -> Any:
+    if not path.is_file():
+        raise StageError("diagnose", f"{path.name} is missing: not a finished `breastmodel run` "
+                         "folder (run the pipeline first)", out)
+    return json.loads(path.read_text())
+
+
+def load_run(out: str | Path) -> RunData:
+    """Load a finished run folder.
+
+    Raises
+    ------
+    StageError
+        The folder lacks a file of a finished run, or its cached stage folders are gone.
+    """
+    from breastmodel.config import load_toml
+    from breastmodel.pipeline.config import resolve_config
+    from breastmodel.pipeline.problem import load_problem
+
+    out = Path(out)
+    if not out.is_dir():
+        raise StageError("diagnose", "no such run folder", out)
+    stages = _read_json(out / "stages.json", out)["stages"]
+    params = _read_json(out / "params.json", out)
+    metrics = _read_json(out / "metrics.json", out)
+    raw = load_toml(out / "config.toml", stage="diagnose")
+    raw.pop("subject", None)
+    config = resolve_config(raw, where=f"diagnose: {out / 'config.toml'}")
+
+    def stage_dir(name: str, label: str | None = None) -> Path:
+        rows = [s for s in stages if s["name"] == name and (label is None or s["label"] == label)]
+        if not rows:
+            raise StageError("diagnose", f"stages.json lists no {label or name!r} stage", out)
+        d = out / "cache" / name / rows[-1]["key"]
+        if not d.is_dir():
+            raise StageError("diagnose", f"the cached {label or name!r} stage is gone "
+                             "(rerun `breastmodel run` with the same config)", d)
+        return d
+
+    problem_dir = stage_dir("problem")
+    X = np.load(stage_dir("stress_free") / "X.npy")
+    x = {}
+    for pos in metrics["positions"]:
+        with np.load(stage_dir("predict", f"predict {pos}") / "predicted.npz") as z:
+            x[pos] = z["x"].copy()
+    return RunData(out=out, config=config, model=params["model"], problem_dir=problem_dir,
+                   problem=load_problem(problem_dir), X=X, x=x, metrics=metrics,
+                   subject=str(metrics.get("subject", "")))
