@@ -122,8 +122,8 @@ def error_maps_figure(rows: Mapping[str, Mapping[str, Any]], *,
     if not rows:
         raise ValueError("diagnose: no error map to draw")
     limit = error_limit(rows.values()) if limit is None else float(limit)
-    fig, axes = plt.subplots(len(rows), len(views), figsize=(3.6 * len(views) + 1.0,
-                                                             3.2 * len(rows)), squeeze=False)
+    fig, axes = plt.subplots(len(rows), len(views), squeeze=False, layout="constrained",
+                             figsize=(3.6 * len(views) + 1.0, 3.2 * len(rows)))
     pc = None
     for i, (label, fm) in enumerate(rows.items()):
         for j, view in enumerate(views):
