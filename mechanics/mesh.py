@@ -123,3 +123,18 @@ class Mesh:
                     kind, name = key.split("/", 1)
                     sets[kind][name] = z[key]
             return cls(nodes=z["nodes"], tets=z["tets"], region=z["region"], **sets)
+
+
+#: Kuhn split of a hexahedral cell into 6 tets sharing the main diagonal; corners numbered
+#: i + 2 j + 4 k. Neighbouring cells split this way conform.
+KUHN = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7],
+                 [0, 4, 6, 7]])
+
+
+def orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Copy of ``tets`` with two nodes of every negatively oriented tet swapped."""
+    tets = np.array(tets, dtype=np.int64)
+    e = nodes[tets[:, 1:]] - nodes[tets[:, :1]]
+    neg = np.linalg.det(e) < 0
+    tets[neg, 2], tets[neg, 3] = tets[neg, 3].copy(), tets[neg, 2].copy()
+    return tets

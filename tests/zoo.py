@@ -6,32 +6,17 @@ and a few named node sets.
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
-from mechanics.mesh import Mesh
+from mechanics.mesh import KUHN, Mesh, orient_tets
 
 # Kuhn split of the unit cube along its 0-7 diagonal: six tets, conforming between cells.
 _CORNERS = np.array([[i, j, k] for k in (0, 1) for j in (0, 1) for i in (0, 1)], float)
-_KUHN = []
-for perm in itertools.permutations(range(3)):
-    path, p = [0], np.zeros(3, int)
-    for axis in perm:
-        p[axis] = 1
-        path.append(int(p[0] + 2 * p[1] + 4 * p[2]))
-    _KUHN.append(path)
-_KUHN = np.array(_KUHN)
+_KUHN = KUHN
 _FIVE = np.array([[0, 1, 2, 4], [1, 3, 2, 7], [1, 4, 5, 7], [2, 7, 6, 4], [1, 2, 4, 7]])
 
 
-def orient(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Swap two nodes of negatively oriented tets."""
-    tets = np.array(tets, dtype=np.int64)
-    e = nodes[tets[:, 1:]] - nodes[tets[:, :1]]
-    neg = np.linalg.det(e) < 0
-    tets[neg, 2], tets[neg, 3] = tets[neg, 3].copy(), tets[neg, 2].copy()
-    return tets
+orient = orient_tets
 
 
 def _face_sets_by_plane(nodes, tol=1e-9):

@@ -16,5 +16,6 @@ COMMANDS = (
     "run",
     "fit",
     "sweep",
+    "diagnose",
     "compare",
 )

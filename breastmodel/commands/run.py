@@ -27,13 +27,52 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--config", type=Path, help="run config (TOML); default: built-in defaults")
     p.add_argument("--out", type=Path, required=True, help="output folder (cache inside)")
     p.add_argument("--quiet", action="store_true", help="no per-stage progress lines")
+    p.add_argument("--add-effect", action="append", default=[], metavar="NAME",
+                   help="switch a candidate effect on (a name from `breastmodel diagnose`, "
+                        "e.g. skin, sliding, strain_stiffening:fascia, ligaments:medial) and "
+                        "fit its parameters too; repeatable")
+    p.add_argument("--from", dest="from_run", type=Path, metavar="DIR",
+                   help="with --add-effect: a diagnosed run whose config (unless --config is "
+                        "given) and estimates start the refit")
     return p
+
+
+def from_run_config(run_dir: Path) -> dict:
+    """A finished run's config with its fitted model as the new starting point."""
+    import json
+
+    from breastmodel.pipeline import load_run_config, resolve_config
+
+    cfg = load_run_config(run_dir / "config.toml", drop=("subject",))
+    params = run_dir / "params.json"
+    if params.is_file():
+        cfg["model"] = json.loads(params.read_text())["model"]
+    return resolve_config(cfg, where=f"run --from {run_dir}")
+
+
+def add_effect(cfg: dict, name: str, from_run: Path | None) -> dict:
+    """``cfg`` with candidate ``name`` switched on; start values from ``from_run``'s
+    diagnosis (its estimate for that candidate) when there is one."""
+    import json
+
+    from breastmodel.diagnosis.candidates import add_to_config, candidate_by_name
+
+    start = None
+    diag = from_run / "diagnosis.json" if from_run else None
+    if diag is not None and diag.is_file():
+        ranking = json.loads(diag.read_text())["missing"]["ranking"]
+        start = next((r["estimate"] for r in ranking if r["name"] == name), None)
+    return add_to_config(cfg, candidate_by_name(cfg["model"], name), start=start)
 
 
 def run(args: argparse.Namespace) -> int:
     from breastmodel.pipeline import load_run_config, run_subject
 
     cfg = load_run_config(args.config)
+    if args.from_run and not args.config:
+        cfg = from_run_config(args.from_run)
+    for name in args.add_effect:
+        cfg = add_effect(cfg, name, args.from_run)
     res = run_subject(args.subject, cfg, args.out, progress=not args.quiet)
     ran = sum(s["status"] == "ran" for s in res["stages"])
     print(f"run: {ran} stage(s) computed, {len(res['stages']) - ran} cached, "

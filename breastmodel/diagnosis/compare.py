@@ -221,7 +221,7 @@ def write_compare(dirs: Sequence[str | Path], out: str | Path, *,
     runs = [load_run(d) for d in dirs]
     summary = compare_runs(dirs, labels=labels, runs=runs)
     positions = list(summary["positions"])
-    regions = skin_regions(runs[0].problem.mesh, runs[0].X)
+    regions = skin_regions(runs[0].problem.mesh, runs[0].X[:runs[0].problem.mesh.n_nodes])
     maps = [{p: failure_map(r, p, regions=regions) for p in positions} for r in runs]
     masks = {"all": np.ones(len(next(iter(regions.values()))), bool), **regions}
     summary["regions"] = {

@@ -207,13 +207,16 @@ def failure_map(run, position: str, *, regions: Mapping[str, np.ndarray] | None 
     if position not in run.x:
         raise ValueError(f"diagnose: position {position!r} is not among the run's predicted "
                          f"positions {sorted(run.x)} ({run.out})")
-    mesh = run.problem.mesh
-    nodes, faces = _skin(mesh)
+    from breastmodel.pipeline.problem import mesh_of, skin_nodes
+
     X = np.asarray(run.X, np.float64)
     x = np.asarray(run.x[position], np.float64)
-    if x.shape != X.shape or X.shape != (mesh.n_nodes, 3):
-        raise ValueError(f"diagnose: {run.out}: node arrays {X.shape}, {x.shape} do not match "
-                         f"the mesh's {mesh.n_nodes} nodes")
+    if x.shape != X.shape:
+        raise ValueError(f"diagnose: {run.out}: node arrays {X.shape}, {x.shape} differ")
+    # A sliding model runs on the split mesh: its skin nodes, in the conforming order.
+    mesh = mesh_of(run.problem, len(x))
+    _, faces = _skin(run.problem.mesh)
+    nodes = skin_nodes(run.problem, len(x))
     pts = x[nodes]
     mv, mf = run.problem.skins[position]
     d, closest = TriangleSurface(mv, mf).distance(pts, signed=True)
@@ -228,7 +231,7 @@ def failure_map(run, position: str, *, regions: Mapping[str, np.ndarray] | None 
     np.add.at(num, faces.ravel(), np.repeat(a0 * (ratio - 1.0), 3))
     np.add.at(den, faces.ravel(), np.repeat(a0, 3))
     if regions is None:
-        regions = skin_regions(mesh, X)
+        regions = skin_regions(run.problem.mesh, X[:run.problem.mesh.n_nodes])
     return {
         "position": position, "skin_nodes": nodes, "faces": faces, "points": pts,
         "X": X[nodes], "signed_error": d, "closest": closest, "error_vector": ev,
@@ -329,7 +332,7 @@ def failure_tables(run, *, maps: Mapping[str, Mapping[str, Any]] | None = None,
         with region ``"all"`` first (every skin node), then those of :func:`skin_regions`.
     """
     if regions is None:
-        regions = skin_regions(run.problem.mesh, run.X)
+        regions = skin_regions(run.problem.mesh, run.X[:run.problem.mesh.n_nodes])
     n = len(next(iter(regions.values())))
     masks = {"all": np.ones(n, bool), **regions}
     out: dict[str, Any] = {

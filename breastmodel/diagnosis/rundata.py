@@ -67,8 +67,7 @@ def load_run(out: str | Path) -> RunData:
     StageError
         The folder lacks a file of a finished run, or its cached stage folders are gone.
     """
-    from breastmodel.config import load_toml
-    from breastmodel.pipeline.config import resolve_config
+    from breastmodel.pipeline.config import load_run_config
     from breastmodel.pipeline.problem import load_problem
 
     out = Path(out)
@@ -77,9 +76,10 @@ def load_run(out: str | Path) -> RunData:
     stages = _read_json(out / "stages.json", out)["stages"]
     params = _read_json(out / "params.json", out)
     metrics = _read_json(out / "metrics.json", out)
-    raw = load_toml(out / "config.toml", stage="diagnose")
-    raw.pop("subject", None)
-    config = resolve_config(raw, where=f"diagnose: {out / 'config.toml'}")
+    if not (out / "config.toml").is_file():
+        raise StageError("diagnose", "config.toml is missing: not a `breastmodel run` folder",
+                         out)
+    config = load_run_config(out / "config.toml", drop=("subject",))
 
     def stage_dir(name: str, label: str | None = None) -> Path:
         rows = [s for s in stages if s["name"] == name and (label is None or s["label"] == label)]

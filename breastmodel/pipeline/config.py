@@ -139,11 +139,15 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     return cfg
 
 
-def load_run_config(path: str | Path | None) -> dict:
-    """Read and resolve a run config file (None: the defaults)."""
+def load_run_config(path: str | Path | None, *, drop: Sequence[str] = ()) -> dict:
+    """Read and resolve a run config file (None: the defaults); ``drop``: top-level keys to
+    ignore (a run folder's ``config.toml`` also records the ``subject``)."""
     if path is None:
         return resolve_config({})
-    return resolve_config(load_toml(path, stage="run"), where=f"run: {path}")
+    raw = load_toml(path, stage="run")
+    for k in drop:
+        raw.pop(k, None)
+    return resolve_config(raw, where=f"run: {path}")
 
 
 def _split(path: str) -> list[str]:

@@ -1,0 +1,50 @@
+"""``breastmodel diagnose DIR``: where a run's model fails, and which physical effect is missing.
+
+DIR is the output folder of ``breastmodel run``. Writes ``DIR/diagnosis.json`` and
+``DIR/diagnosis.html``: signed skin error maps of every position from anterior, lateral and
+inferior views on one colour scale, tables per position and skin region (quadrants,
+inframammary fold, nipple area, left/right) with normal and tangential parts and error
+against local strain; then every registered effect the model does not use, and every
+parameter it holds fixed, ranked by how much of the residual it explains after re-fitting,
+with the predicted error per position, the evidence per region, a real check of the best
+candidate, and a plain verdict when nothing explains more than the noise floor.
+Model evaluations are stored in ``DIR/diagnosis/evaluations`` (a rerun resumes).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser(
+        "diagnose",
+        help="show where a run fails and rank the physical effects that would fix it",
+        description=__doc__.split("\n\n", 1)[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("run_dir", type=Path, metavar="DIR", help="a `breastmodel run` output folder")
+    p.add_argument("--workers", type=int, default=0,
+                   help="local dask workers for the model evaluations (default 0: in this "
+                        "process)")
+    p.add_argument("--scheduler", help="address of a running dask scheduler (tcp://host:8786)")
+    p.add_argument("--verify-top", type=int, default=1,
+                   help="check this many of the best candidates by a real evaluation")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from breastmodel.diagnosis.diagnose import diagnose
+
+    d = diagnose(args.run_dir, n_workers=args.workers, scheduler=args.scheduler,
+                 verify_top=args.verify_top, progress=not args.quiet)
+    m = d["missing"]
+    print(m["verdict"])
+    print(f"{'#':>3} {'candidate':<40} {'explained':>9} {'pred. RMS':>9}  significant")
+    for i, r in enumerate(m["ranking"][:10], 1):
+        print(f"{i:3d} {r['name']:<40} {100 * r['explained']:8.0f}% {r['predicted_rms_mm']:9.3f}"
+              f"  {'yes' if r['significant'] else 'no'}")
+    print(f"report: {Path(args.run_dir) / 'diagnosis.html'}")
+    return 0

@@ -1,0 +1,175 @@
+"""Which effect is missing: candidates, ranking on hidden-effect data, add it, error falls.
+
+The data are two-mound problems (breastmodel.phantom.mounds) whose measured skins a truth
+model predicts, so that one fit + diagnosis + refit takes well under a minute. The slow tests
+at the bottom repeat the loop for more hidden effects.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import numpy as np
+import pytest
+
+from breastmodel.cli import main
+from breastmodel.diagnosis import load_run, rank_candidates
+from breastmodel.diagnosis.candidates import add_to_config, candidate_by_name, enumerate_candidates
+from breastmodel.phantom.mounds import mound_problem
+from breastmodel.pipeline.config import resolve_config
+from breastmodel.pipeline.run import run_problem
+
+NH = {"name": "neo_hookean", "nu": 0.49}
+BASE = {"materials": {"breast_left": {**NH, "E": 1.0}, "breast_right": {**NH, "E": 1.0},
+                      "muscle": {**NH, "E": 10.0}},
+        "effects": {"fixed": {"node_set": "fixed"}}}
+TIED_E = "materials.breast_left.E|materials.breast_right.E"
+
+
+def _with(model, **effects):
+    out = copy.deepcopy(model)
+    out["effects"].update(effects)
+    return out
+
+
+def _config(model, budget=20):
+    return resolve_config({
+        "model": model, "stress_free": {"method": "none"},
+        "fit": {"enabled": True, "budget": budget, "sensitivity": False,
+                "calibrate": ["prone", "supine"],
+                "parameters": {TIED_E: {"min": 0.2, "max": 5.0}}}})
+
+
+def _worst(metrics) -> float:
+    return max(m["mhd_mm"] for m in metrics["positions"].values())
+
+
+# ---------------------------------------------------------------- candidates
+
+
+def test_every_unused_registered_effect_is_a_candidate_and_a_new_one_appears_by_itself():
+    from mechanics.effects import EFFECTS, Effect, Param, register_effect
+
+    names = {c.name for c in enumerate_candidates(BASE, {TIED_E})[0]}
+    assert {"skin", "fascia", "sliding", "supports", "strain_stiffening", "regions:asymmetry",
+            "regions:gland", "ligaments:inframammary", "ligaments:medial",
+            "ligaments:lateral", "parameter:materials.muscle.E"} <= names
+    assert not names & {"gravity", "point_load", "fixed", "tied"}
+    assert "parameter:materials.breast_left.E" not in names  # fitted, not held fixed
+
+    @register_effect
+    class Prestress(Effect):
+        name = "test_prestress"
+        params = (Param("sigma", "kPa", 0.5, 0.0, 5.0),)
+
+    try:
+        cands, _ = enumerate_candidates(BASE, {TIED_E})
+        new = next(c for c in cands if c.name == "test_prestress")
+        assert new.free == {"effects.test_prestress.sigma": (0.0, 5.0)}
+    finally:
+        del EFFECTS["test_prestress"]
+
+    skin = _with(BASE, skin={"E": 4.0}, tied={})
+    cands = {c.name: c for c in enumerate_candidates(skin, {TIED_E})[0]}
+    assert "strain_stiffening:skin" in cands and "parameter:effects.skin.E" in cands
+    assert cands["sliding"].effects == {"sliding": {}, "tied": None}  # replaces the tie
+    assert "tied" not in cands
+
+
+def test_add_to_config_switches_the_effect_on_and_fits_its_parameters():
+    cfg = _config(BASE)
+    new = add_to_config(cfg, candidate_by_name(cfg["model"], "skin"),
+                        start={"effects.skin.E": 7.0})
+    assert new["model"]["effects"]["skin"]["E"] == 7.0
+    assert new["fit"]["parameters"]["effects.skin.E"] == {"min": 1.0, "max": 20.0}
+    assert TIED_E in new["fit"]["parameters"]
+    asym = add_to_config(cfg, candidate_by_name(cfg["model"], "regions:asymmetry"))
+    assert TIED_E not in asym["fit"]["parameters"]  # the regions effect sets the moduli now
+    assert set(asym["fit"]["parameters"]) == {"effects.regions.E_left",
+                                              "effects.regions.E_right"}
+    with pytest.raises(ValueError, match="not a candidate"):
+        candidate_by_name(cfg["model"], "telepathy")
+
+
+# ---------------------------------------------------------------- the loop
+
+
+@pytest.fixture(scope="module")
+def hidden_skin(tmp_path_factory):
+    """Truth: breast 1 kPa with a 4 kPa skin; the fitted model has no skin."""
+    root = tmp_path_factory.mktemp("hidden_skin")
+    prob = mound_problem(root / "problem", _with(BASE, skin={"E": 4.0}))
+    run_problem(prob, _config(BASE), root / "run0", progress=False)
+    return root, prob
+
+
+def test_the_diagnosis_ranks_the_hidden_skin_first(hidden_skin):
+    root, _ = hidden_skin
+    main(["diagnose", str(root / "run0"), "--quiet"])
+    d = json.loads((root / "run0" / "diagnosis.json").read_text())["missing"]
+    best = d["ranking"][0]
+    assert best["name"] == "skin" and best["significant"]
+    assert best["explained"] > 0.9
+    # the checked (nonlinear) residual of the best candidate is far below the current one
+    assert best["verified"]["rms_mm"] < 0.6 * d["baseline"]["rms_mm"]
+    assert sum(r["significant"] for r in d["ranking"]) <= 3
+    assert "missing effect: skin" in d["verdict"]
+    html = (root / "run0" / "diagnosis.html").read_text()
+    assert "data:image/png;base64," in html and "--add-effect skin" in html
+    where = json.loads((root / "run0" / "diagnosis.json").read_text())["where"]
+    assert set(where["positions"]) == {"prone", "supine", "supine_tilted"}
+
+
+def test_adding_the_effect_lowers_the_worst_position_by_half(hidden_skin, capsys):
+    root, prob = hidden_skin
+    before = load_run(root / "run0")
+    cfg = add_to_config(_config(BASE, budget=40),
+                        candidate_by_name(before.model, "skin"))
+    run_problem(prob, cfg, root / "run1", progress=False)
+    after = load_run(root / "run1")
+    assert _worst(after.metrics) <= 0.5 * _worst(before.metrics)
+    # the recovered skin modulus is the truth's (4 kPa) within the fit's resolution
+    assert after.model["effects"]["skin"]["E"] == pytest.approx(4.0, rel=0.15)
+    assert main(["compare", str(root / "run0"), str(root / "run1"), "--out",
+                 str(root / "cmp")]) == 0
+    cmp = json.loads((root / "cmp" / "compare.json").read_text())
+    for pos, t in cmp["positions"].items():
+        vals = t["mhd_mm"]["values"]
+        assert vals[1] < vals[0], pos
+    assert "+ skin" in capsys.readouterr().out or "skin" in cmp["runs"][1]["label"]
+
+
+def test_a_control_without_hidden_effect_reports_noise(tmp_path):
+    prob = mound_problem(tmp_path / "problem", BASE, noise_mm=0.1, seed=3)
+    run_problem(prob, _config(BASE), tmp_path / "run", progress=False)
+    d = rank_candidates(load_run(tmp_path / "run"), progress=False, verify_top=0)
+    assert not [r["name"] for r in d["ranking"] if r["significant"]]
+    assert d["verdict"].startswith("no candidate explains more than the noise")
+    assert d["noise_floor_mm"] == pytest.approx(0.1, rel=0.35)
+
+
+# ---------------------------------------------------------------- more hidden effects (slow)
+
+HIDDEN = {
+    "ligaments:inframammary": {"ligaments": {"groups": ["inframammary"], "E": 100.0}},
+    "regions:asymmetry": {"regions": {"E_left": 0.6, "E_right": 1.5, "gland": False}},
+    "strain_stiffening": {"strain_stiffening": {"Jm": 0.1}},
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(HIDDEN))
+def test_hidden_effect_is_ranked_first_and_adding_it_halves_the_worst_error(tmp_path, name):
+    truth = _with(BASE, **HIDDEN[name])
+    prob = mound_problem(tmp_path / "problem", truth)
+    run_problem(prob, _config(BASE, budget=30), tmp_path / "run0", progress=False)
+    before = load_run(tmp_path / "run0")
+    d = rank_candidates(before, progress=False)
+    assert d["ranking"][0]["name"] == name and d["ranking"][0]["significant"]
+    cfg = add_to_config(_config(BASE, budget=60), candidate_by_name(before.model, name),
+                        start=d["ranking"][0]["estimate"])
+    run_problem(prob, cfg, tmp_path / "run1", progress=False)
+    after = load_run(tmp_path / "run1")
+    assert _worst(after.metrics) <= 0.5 * _worst(before.metrics)
+    assert np.isfinite(_worst(after.metrics))
