@@ -174,11 +174,15 @@ def simulate_positions(
         labels = stress_free_labels(anatomy, voxel_size=voxel_size)
         timings["voxelise"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        mesh = meshing.mesh_labels(labels, size_mm=tm.mesh_size_mm, progress=progress)
+        mesh = meshing.mesh_labels(labels, size_mm=tm.mesh_size_mm, progress=progress,
+                                   keep_gland=tm.has_gland)
         timings["mesh"] = time.perf_counter() - t0
         say("phantom: truth mesh %d nodes, %d tets", mesh.n_nodes, mesh.n_tets)
     solved_mesh = split_interface(mesh) if tm.split_interface else mesh
     materials = {int(k): dict(v) for k, v in tm.materials.items()}
+    for gland, breast in ((4, 1), (5, 3)):  # gland tissue inherits its side's bulk law
+        if gland in solved_mesh.region and gland not in materials and breast in materials:
+            materials[gland] = dict(materials[breast])
     for code in set(solved_mesh.region.tolist()) - set(materials):
         raise ValueError(f"phantom: truth model has no material for mesh region {code}")
     X = np.asarray(solved_mesh.nodes, float)
@@ -387,11 +391,24 @@ def add_simulation_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--truth-effects", default=None, metavar="NAME[,NAME]",
                    help="comma-separated presets applied on top of --truth-preset "
                         "(each changes one hidden effect)")
+    g.add_argument("--truth-config", type=Path, default=None, metavar="TOML",
+                   help="truth physics from a file: [materials.<region name>] tables and "
+                        "[effects.<registered effect>] tables (any effects and parameters; "
+                        "replaces the presets)")
     g.add_argument("--truth-mesh-size", type=float, default=None, metavar="MM",
                    help="tet size of the truth mesh, mm (default 6)")
 
 
 def truth_model_from_args(args: argparse.Namespace) -> TruthModel:
+    if getattr(args, "truth_config", None):
+        from breastmodel.phantom.truth_model import from_toml
+
+        tm = from_toml(args.truth_config)
+        if getattr(args, "truth_mesh_size", None):
+            from dataclasses import replace
+
+            tm = replace(tm, mesh_size_mm=float(args.truth_mesh_size))
+        return tm
     name = args.truth_preset
     if getattr(args, "truth_effects", None):
         name = "+".join([name] + [s.strip() for s in args.truth_effects.split(",") if s.strip()])

@@ -16,7 +16,8 @@ from typing import Any
 
 from mechanics.mesh import REGIONS
 
-__all__ = ["TruthModel", "default_truth_model", "preset", "PRESETS", "with_effects"]
+__all__ = ["TruthModel", "default_truth_model", "from_toml", "preset", "PRESETS",
+           "with_effects"]
 
 #: Young's modulus of the breast (fat + gland) in the default truth, kPa. Measured with 1 kPa
 #: (bench/phantom_sim.py, adult anatomy, 8 mm mesh): nipple displacement from the stress-free
@@ -69,6 +70,11 @@ class TruthModel:
             raise ValueError("truth model: gravity is set per position; remove it from effects")
         if "sliding" in self.effects and "tied" in self.effects:
             raise ValueError("truth model: 'sliding' and 'tied' exclude each other")
+
+    @property
+    def has_gland(self) -> bool:
+        """True when the truth gives glandular tissue its own modulus (mesh keeps gland)."""
+        return bool(dict(self.effects.get("regions", {"gland": False})).get("gland", True))
 
     @property
     def split_interface(self) -> bool:
@@ -136,6 +142,9 @@ PRESETS: dict[str, dict[str, dict]] = {
     # Jm 0.1: -19 % supine displacement on the half-size anatomy at 1 kPa (Jm 1: -3 %).
     "gent_breast": {"effects": {"strain_stiffening": {"Jm": 0.1}}},
     "asymmetric": {"effects": {"regions": {"E_left": 0.6, "E_right": 1.5, "gland": False}}},
+    # glandular heterogeneity: gland 3x stiffer than fat (the default breast modulus)
+    "gland": {"effects": {"regions": {"E_left": E_BREAST, "E_right": E_BREAST,
+                                      "E_gland": 3 * E_BREAST, "gland": True}}},
 }
 
 
@@ -167,3 +176,42 @@ def preset(name: str, *, base: TruthModel | None = None) -> TruthModel:
         ov = PRESETS[part]
         model = with_effects(model, ov.get("effects", {}), materials=ov.get("materials"))
     return replace(model, name=name)
+
+
+def from_toml(path) -> TruthModel:
+    """A truth model from a TOML file: ``[materials.<region name or code>]`` tables (name, E,
+    nu, ...), ``[effects.<registered effect>]`` keyword tables, optional ``mesh_size_mm`` and
+    ``name``. Regions without a table keep the default truth's material.
+
+    Raises
+    ------
+    ValueError
+        Unknown region or effect, or a bad table (names the file).
+    """
+    from pathlib import Path
+
+    from breastmodel.config import load_toml
+    from mechanics.effects import EFFECTS
+
+    path = Path(path)
+    raw = load_toml(path, stage="phantom")
+    extra = set(raw) - {"materials", "effects", "mesh_size_mm", "name"}
+    if extra:
+        raise ValueError(f"phantom: {path}: unknown key(s) {sorted(extra)}; expected "
+                         "materials, effects, mesh_size_mm, name")
+    base = default_truth_model()
+    mats = {k: dict(v) for k, v in base.materials.items()}
+    for region, table in dict(raw.get("materials", {})).items():
+        code = REGIONS.get(region) if not str(region).isdigit() else int(region)
+        if code is None:
+            raise ValueError(f"phantom: {path}: unknown region {region!r}; known "
+                             f"{sorted(REGIONS)}")
+        mats[code] = dict(table)
+    effects = dict(raw.get("effects", {}))
+    for name in effects:
+        if name.split(":", 1)[0] not in EFFECTS:
+            raise ValueError(f"phantom: {path}: unknown effect {name!r}; known "
+                             f"{sorted(EFFECTS)}")
+    return TruthModel(materials=mats, effects=effects,
+                      mesh_size_mm=float(raw.get("mesh_size_mm", base.mesh_size_mm)),
+                      name=str(raw.get("name", path.stem)))

@@ -173,14 +173,15 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
     return fn
 
 
-def _fit(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, Any], out: Path):
+def _fit(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, Any], out: Path,
+         progress: bool):
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
         from breastmodel.pipeline.fit import fit_parameters, fit_work_dir
 
         res = fit_parameters(problem_dir, settings, cfg["fit"],
                              work_dir=fit_work_dir(out / "fit", problem_dir, settings),
-                             progress=True)
+                             progress=progress)
         write_json(d / "fit.json", res)
     return fn
 
@@ -376,7 +377,7 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
         settings = fit_settings(cfg, positions, subject.reference)
         fit_dir, _ = R.stage("fit", {"settings": settings, "fit": {
             k: v for k, v in cfg["fit"].items() if k not in ("n_workers", "scheduler")}},
-            [prob_key], _fit(prob_dir, cfg, settings, out))
+            [prob_key], _fit(prob_dir, cfg, settings, out, R.progress))
         fit_info = json.loads((fit_dir / "fit.json").read_text())
         model = set_params(model, fit_info["best"]["params"])
 

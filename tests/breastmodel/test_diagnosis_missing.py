@@ -151,18 +151,27 @@ def test_a_control_without_hidden_effect_reports_noise(tmp_path):
 
 # ---------------------------------------------------------------- more hidden effects (slow)
 
+#: name -> (hidden effect tables, mound_problem options). Ligaments stiff enough (1000 kPa,
+#: 20 mm^2) to move the two-mound skin by more than the 0.02 mm resolution of the diagnosis.
 HIDDEN = {
-    "ligaments:inframammary": {"ligaments": {"groups": ["inframammary"], "E": 100.0}},
-    "regions:asymmetry": {"regions": {"E_left": 0.6, "E_right": 1.5, "gland": False}},
-    "strain_stiffening": {"strain_stiffening": {"Jm": 0.1}},
+    "ligaments:inframammary": ({"ligaments": {"groups": ["inframammary"], "E": 1000.0,
+                                              "area": 20.0}}, {}),
+    "ligaments:medial": ({"ligaments": {"groups": ["medial"], "E": 1000.0, "area": 20.0}}, {}),
+    "ligaments:lateral": ({"ligaments": {"groups": ["lateral"], "E": 1000.0, "area": 20.0}},
+                          {}),
+    "regions:asymmetry": ({"regions": {"E_left": 0.6, "E_right": 1.5, "gland": False}}, {}),
+    "regions:gland": ({"regions": {"E_left": 1.0, "E_right": 1.0, "E_gland": 5.0,
+                                   "gland": True}}, {"gland": True}),
+    "strain_stiffening": ({"strain_stiffening": {"Jm": 0.1}}, {}),
+    "fascia": ({"fascia": {"E": 250.0}}, {}),
 }
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(HIDDEN))
 def test_hidden_effect_is_ranked_first_and_adding_it_halves_the_worst_error(tmp_path, name):
-    truth = _with(BASE, **HIDDEN[name])
-    prob = mound_problem(tmp_path / "problem", truth)
+    hidden, opts = HIDDEN[name]
+    prob = mound_problem(tmp_path / "problem", _with(BASE, **hidden), **opts)
     run_problem(prob, _config(BASE, budget=30), tmp_path / "run0", progress=False)
     before = load_run(tmp_path / "run0")
     d = rank_candidates(before, progress=False)

@@ -188,3 +188,21 @@ def test_adult_phantom_displacements(tmp_path):
     i = int(np.argmin(np.linalg.norm(X - nip, axis=1)))
     d = np.linalg.norm(sims["supine"].x[i] - sims["prone"].x[i])
     assert 10.0 < d < 40.0, d
+
+
+def test_truth_model_from_a_toml_file_takes_any_registered_effect(tmp_path):
+    from breastmodel.phantom.truth_model import from_toml
+
+    f = tmp_path / "truth.toml"
+    f.write_text('name = "stiff gland"\nmesh_size_mm = 7.0\n'
+                 '[materials.muscle]\nname = "neo_hookean"\nE = 12.0\nnu = 0.49\n'
+                 '[effects.regions]\nE_left = 2.0\nE_right = 2.0\nE_gland = 6.0\n'
+                 '[effects.ligaments]\ngroups = ["medial"]\n')
+    tm = from_toml(f)
+    assert tm.name == "stiff gland" and tm.mesh_size_mm == 7.0
+    assert tm.materials[2]["E"] == 12.0 and tm.materials[1]["E"] == 2.0  # default kept
+    assert tm.effects["ligaments"] == {"groups": ["medial"]} and tm.has_gland
+    assert not tm.split_interface
+    f.write_text('[effects.telekinesis]\nE = 1.0\n')
+    with pytest.raises(ValueError, match="unknown effect 'telekinesis'"):
+        from_toml(f)
