@@ -45,6 +45,19 @@ class SolverOptions:
         factorisation would cost in triangular solves, so reuse never costs much more than
         it saves (measured at 20k tets: 6 -> 3 factorisations)
     reuse_below : see ``reuse_factor``
+    stagnate_after, stagnate_above : cut a step back early once it has taken
+        ``stagnate_after`` iterations and the relative residual is still above
+        ``stagnate_above`` (no sign of quadratic convergence); ``stagnate_after = 0`` turns the
+        check off and leaves only ``max_newton`` (linearly converging solves, e.g. friction)
+    singular_shift : what to do when the tangent A is singular (its factorisation fails or
+        its solve does not satisfy the system): solve the Newton correction with A + rho S,
+        rho = min(1, relative residual), S the regularising stiffness that effects offer
+        (``regularization(X, x)``: the sliding effect's stick stiffness at contact points
+        without pressure, whose friction gives no tangential stiffness at the first iterate
+        of a solve), else (or if that is singular too) with A + singular_shift * rho
+        |diag(A)| on the displacement block (Levenberg-Marquardt). Only the Newton matrix
+        changes, never the residual, so the converged state is the unregularised
+        equilibrium. 0 turns both off (a singular tangent then cuts the step back).
     progress : log every Newton iteration at INFO level
     """
 
@@ -58,6 +71,9 @@ class SolverOptions:
     line_search: bool = True
     reuse_factor: bool = True
     reuse_below: float = 0.05
+    stagnate_after: int = 8
+    stagnate_above: float = 1e-3
+    singular_shift: float = 1e-2
     progress: bool = False
 
 
@@ -245,14 +261,33 @@ class _Newton:
         At = A.T  # csc view of the lower triangle, no copy
         return lambda y: A @ y + At @ y - d * y
 
-    def direction(self, A, R, rel: float) -> np.ndarray:
+    def regularized(self, A, u: np.ndarray, rel: float):
+        """Newton matrices to try when A is singular, in order: A + min(1, rel) S with S the
+        effects' regularising stiffness (``regularization(X, x)`` COO triplets, e.g. the stick
+        stiffness of frictional contact at zero pressure), then A + mu |diag(A)| on the
+        displacement block (Levenberg-Marquardt, mu = singular_shift * min(1, rel))."""
+        mu = min(1.0, rel)
+        x = self.X + u.reshape(-1, 3)
+        parts = [eff.regularization(self.X, x) for eff in self.model.effects
+                 if hasattr(eff, "regularization")]
+        parts = [p for p in parts if len(p[2])]
+        if parts:
+            r, c, v = (np.concatenate(q) for q in zip(*parts, strict=True))
+            yield (A + self.sys.extra_upper(r, c, mu * v, symmetric=self.symmetric)).tocsr()
+        nf = self.sys.n_free
+        d = np.zeros(self.sys.n)
+        d[:nf] = np.abs(A.diagonal()[:nf])
+        d[:nf] = np.where(d[:nf] > 0.0, d[:nf], d[:nf].max(initial=0.0) or 1.0)
+        yield (A + sp.diags(self.opt.singular_shift * mu * d, format="csr")).tocsr()
+
+    def direction(self, A, R, rel: float, *, fresh: bool = False) -> np.ndarray:
         b = np.zeros(self.sys.n)
         b[: self.sys.n_free] = -R[self.free]
         matvec = self._matvec(A)
         y = None
         budget = int(0.8 * self.last_factor_s / max(self.last_solve_s, 1e-9))
         if self.opt.reuse_factor and self.factored and rel < self.opt.reuse_below \
-                and budget >= 3:
+                and budget >= 3 and not fresh:
             y = self._krylov(matvec, b, rel, min(budget, 40))
             self.krylov_used += y is not None
         if y is None:
@@ -441,12 +476,22 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
             return False, u, ev, f"no convergence in {opt.max_newton} iterations"
         if rf > 1e6 * max(r0, 1e-300) and it > 0:
             return False, u, ev, "residual diverged"
-        if it >= 8 and rel > 1e-3:  # no sign of quadratic convergence: cut back early
+        if opt.stagnate_after and it >= opt.stagnate_after and rel > opt.stagnate_above:
             return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
         try:
             du = nw.direction(A, R, rel)
         except SingularSystem as exc:
-            return False, u, ev, f"singular tangent ({exc}); is the model constrained?"
+            du = None
+            if opt.singular_shift > 0.0:
+                for A_reg in nw.regularized(A, u, rel):
+                    try:
+                        du = nw.direction(A_reg, R, rel, fresh=True)
+                    except SingularSystem:
+                        continue
+                    entry["shifted"] = entry.get("shifted", 0) + 1
+                    break
+            if du is None:
+                return False, u, ev, f"singular tangent ({exc}); is the model constrained?"
         entry["newton"] += 1
         s0 = float(R @ du)
         eta, accepted = 1.0, None

@@ -29,6 +29,14 @@ step a slipping point's anchor moves so that the carried force sits on the cone.
 tangent is exact for the frozen anchor and n0; it is unsymmetric while slipping (the effect
 then sets ``symmetric = False``).
 State (anchors, multipliers) is reset when a step starts from x == X (a new solve).
+
+Zero pressure: where the friction bound is zero (no compression: the first iterate of every
+solve, whose gaps are all zero) friction adds no tangential stiffness, so the sliding modes of
+a breast held only by friction are free and the tangent is singular. :meth:`Sliding.regularization`
+offers the stick stiffness of those points; the solver adds it to the Newton matrix (never the
+residual) only when the tangent is singular, scaled by the relative residual
+(``SolverOptions.singular_shift``), so the first correction sticks while the pressure builds
+and the equilibrium is unchanged.
 """
 
 from __future__ import annotations
@@ -60,7 +68,7 @@ RULES = {
 }
 
 
-def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
+def friction_law(r: np.ndarray, b: np.ndarray, sigma: float, *, stick_at_zero: bool = False):
     """Magnitude of the friction force from the trial force r and the bound b (mN).
 
     sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: a smooth minimum,
@@ -86,7 +94,8 @@ def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
     phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), 0.5 * (1.0 + 1.0 / c))
     # r = b = 0 (the first iterate of a solve): no friction in the tangent, so the normal
     # pressure builds up first (measured: a stick tangent there makes supine solves stagnate)
-    phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
+    if not stick_at_zero:
+        phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
     phi_b = scale * np.where(h > 0, 0.5 * (c - (sigma**2 * b - (r - b)) / hs), 0.0)
     return phi, phi_r, phi_over_r, phi_b
 
@@ -290,6 +299,41 @@ class Sliding(_InterfaceContact):
         """Forget friction anchors and multipliers (start of a new solve from scratch)."""
         self.anchor_facet = None
         self.multiplier = np.zeros(len(self.sN))
+
+    def regularization(self, X: np.ndarray, x: np.ndarray):
+        """COO triplets (dof numbering, mN/mm) of the stick stiffness eps_T w B^T P0 B of the
+        contact points whose friction bound is zero (no compressive pressure).
+
+        Not part of the tangent: the solver adds it, scaled down with the residual, only when
+        the tangent is singular (:class:`mechanics.solver.SolverOptions` ``singular_shift``).
+        At zero contact pressure (the first iterate of a solve) friction gives no tangential
+        stiffness and the sliding modes are free; this stiffness makes the first Newton
+        correction a sticking one while the pressure builds. It never enters the residual,
+        so the equilibrium is unchanged.
+        """
+        none = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+        if self.values["friction"] == 0.0:
+            return none
+        if self.anchor_facet is None:
+            self._set_anchors(x, self.contact_points(x))
+        _, _, _, _, fN, w = self._normal(X, x, hessian=False)
+        free = self._bound(fN, w)[0] <= 0.0
+        if not free.any():
+            return none
+        mnodes = self.master[self.anchor_facet[free]]
+        xi = self.anchor_bary[free]
+        C = self._C[free]
+        B = np.zeros((int(free.sum()), 3, 12))
+        B[:, :, 0:3] = np.eye(3)
+        for a in range(3):
+            B[:, :, 3 + 3 * a:6 + 3 * a] = -xi[:, a, None, None] * np.eye(3)
+        B = B @ C
+        n0 = self.anchor_normal[free]
+        P0 = np.eye(3) - np.einsum("si,sj->sij", n0, n0)
+        epsT = self.values["tangential_penalty"] * w[free]
+        K = epsT[:, None, None] * (B.transpose(0, 2, 1) @ P0 @ B)
+        dof = node_dofs(np.concatenate([self.sconn[free], mnodes], axis=1))
+        return coo_blocks(dof, dof, K)
 
     # -- residual and tangent ----------------------------------------------------------
     def contribute(self, X, x, load):

@@ -111,3 +111,22 @@ def test_pardiso_and_scipy_agree():
     a = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10))
     b = solve(model, options=SolverOptions(linear_solver="pardiso", tol=1e-10))
     np.testing.assert_allclose(b.u, a.u, atol=1e-8 * np.abs(a.u).max())
+
+
+def test_stagnation_cutback_is_configurable():
+    """The early cut-back of a step that is still above ``stagnate_above`` after
+    ``stagnate_after`` iterations follows the options: a strict setting cuts back every step
+    that needs more than one iteration (and so fails), the check switched off leaves only
+    ``max_newton`` (same solution as the default)."""
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 0, -1)},
+                                   "fixed": {"node_set": "fixed"}})
+    ref = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10))
+    assert max(e["newton"] for e in ref.log) >= 2
+    strict = SolverOptions(linear_solver="scipy", tol=1e-10, stagnate_after=1,
+                           stagnate_above=0.0, max_cutbacks=2)
+    with pytest.raises(SolverError, match="stagnating"):
+        solve(model, options=strict)
+    off = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10,
+                                             stagnate_after=0))
+    np.testing.assert_allclose(off.u, ref.u, atol=1e-8 * np.abs(ref.u).max())

@@ -8,7 +8,7 @@ from zoo import box
 
 from mechanics.mesh import Mesh
 from mechanics.model import build_model
-from mechanics.solver import SolverOptions, solve
+from mechanics.solver import SolverError, SolverOptions, residual_and_tangent, solve
 
 # The penalty (1e4 kPa/mm against E = 1 kPa) limits the attainable residual to ~1e-9.
 OPTS = SolverOptions(tol=1e-8, linear_solver="scipy")
@@ -149,3 +149,64 @@ def test_no_separation_under_pulling_load():
     w = sliding.weights(X)
     assert abs((w * gap).sum() / w.sum() - W / (eps * 100.0)) <= 1e-6 * W / (eps * 100.0)
     assert gap.max() <= 1e-3  # mm: held on, not separated
+
+
+def test_friction_from_exactly_zero_pressure_sticks_on_an_incline():
+    """The interface lies exactly in z = 0, so at the first iterate every gap and every contact
+    pressure is exactly zero: friction gives no tangential stiffness and the downhill mode of
+    the block is free (singular tangent). The solver's regularisation (the sliding effect's
+    stick stiffness, only in the Newton matrix) gets past it, and the converged state is the
+    unregularised equilibrium: friction carries W sin a (tan a = 0.05 < k = 0.1, 1%), the
+    block does not slide, and the exact residual vanishes."""
+    mesh = stack(((6, 3, 1), (30.0, 15.0, 4.0), (-15.0, -7.5, -4.0)),
+                 ((2, 2, 1), (10.0, 10.0, 5.0), (-5.0, -5.0, 0.0)))
+    a = np.arctan(0.05)
+    density = 1e4
+    model = build_model(mesh, materials(1e3, 1e3), {
+        "fixed": {"node_set": "bottom"},
+        "gravity": {"direction": (np.sin(a), 0.0, -np.cos(a)), "density": density},
+        "sliding": {"friction": 0.1, "penalty": 1e3, "tangential_penalty": 1e3},
+    })
+    sliding = model.effects[-1]
+    X = mesh.nodes
+    sliding.begin_step(X, X.copy())
+    assert np.all(sliding.gaps(X, X) == 0.0)  # the premise: exactly zero pressure
+    with pytest.raises(SolverError, match="singular"):
+        solve(model, options=SolverOptions(tol=1e-9, linear_solver="scipy", singular_shift=0.0))
+    st = solve(model, options=SolverOptions(tol=1e-9, linear_solver="scipy"))
+    assert any(e.get("shifted", 0) for e in st.log)
+    W = density * 9.81e-6 * 500.0  # mN
+    _, t, _ = sliding.tangential_state(X, st.x)
+    assert abs(t[:, 0].sum() - W * np.sin(a)) <= 0.01 * W * np.sin(a)
+    assert abs(st.u[mesh.node_sets["upper"], 0].mean()) <= 0.01  # mm: elastic only
+    R, _ = residual_and_tangent(model, X, st.x, 1.0)
+    free = np.ones(mesh.n_nodes, bool)
+    free[mesh.node_sets["bottom"]] = False
+    assert np.linalg.norm(R.reshape(-1, 3)[free]) <= 1e-7 * W
+
+
+def test_regularization_is_the_stick_stiffness_of_unloaded_points():
+    """The regularising stiffness is symmetric positive semi-definite, covers exactly the
+    points without compressive pressure, and is absent without friction."""
+    mesh = stack(((3, 3, 1), (10.0, 10.0, 2.0), (0.0, 0.0, 0.0)),
+                 ((2, 2, 1), (10.0, 10.0, 4.0), (0.0, 0.0, 2.0)))
+    X = mesh.nodes
+    eff = build_model(mesh, materials(1.0, 1.0), {"sliding": {"friction": 0.1}}).effects[0]
+    x = X.copy()
+    x[mesh.node_sets["upper"], 2] += 0.01  # pulled apart: tension, zero friction bound
+    eff.begin_step(X, X.copy())
+    r, c, v = eff.regularization(X, x)
+    n = 3 * mesh.n_nodes
+    S = np.zeros((n, n))
+    np.add.at(S, (r, c), v)
+    np.testing.assert_allclose(S, S.T, atol=1e-12)
+    ev = np.linalg.eigvalsh(S)
+    assert ev.min() >= -1e-9 * ev.max() and ev.max() > 0
+    # stiffness of a rigid tangential slide of the upper block = eps_T * interface area
+    d = np.zeros((mesh.n_nodes, 3))
+    d[mesh.node_sets["upper"], 0] = 1.0
+    assert abs(d.ravel() @ S @ d.ravel() - 100.0 * 100.0) <= 1e-9 * 1e4
+    x[mesh.node_sets["upper"], 2] -= 0.02  # pressed together: no regularisation
+    assert len(eff.regularization(X, x)[2]) == 0
+    off = build_model(mesh, materials(1.0, 1.0), {"sliding": {"friction": 0.0}}).effects[0]
+    assert len(off.regularization(X, x)[2]) == 0
