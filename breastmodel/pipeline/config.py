@@ -119,9 +119,9 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
         raise ConfigError(f"{where} [stress_free] method must be 'inverse', 'paper' or "
                           f"'none', got {sf['method']!r}")
     fit = cfg["fit"]
-    if fit["method"] not in ("grid", "optimizer"):
-        raise ConfigError(f"{where} [fit] method must be 'grid' or 'optimizer', "
-                          f"got {fit['method']!r}")
+    if fit["method"] not in ("grid", "optimizer", "least_squares"):
+        raise ConfigError(f"{where} [fit] method must be 'grid', 'optimizer' or "
+                          f"'least_squares', got {fit['method']!r}")
     for path, spec in fit["parameters"].items():
         if not isinstance(spec, Mapping):
             raise ConfigError(f"{where} [fit.parameters] {path!r} must be a table "

@@ -1,4 +1,5 @@
-"""Fitting material parameters: the paper's grid (a dask sweep) or a bounded optimiser.
+"""Fitting material parameters: the paper's grid (a dask sweep), a bounded optimiser of the
+MHD, or bounded least squares on the skin residual.
 
 The objective of a parameter vector is :func:`breastmodel.pipeline.problem.evaluate_params`
 (mean MHD over the calibration positions, mm). Failed solves give NaN: the grid records them
@@ -24,7 +25,8 @@ import numpy as np
 
 log = logging.getLogger("breastmodel.pipeline")
 
-__all__ = ["fit_parameters", "fit_work_dir", "grid_points", "optimise", "sensitivity"]
+__all__ = ["fit_parameters", "fit_work_dir", "grid_points", "least_squares", "optimise",
+           "sensitivity"]
 
 _PENALTY_MM = 1e3  # objective of a failed evaluation as the optimiser sees it
 
@@ -75,8 +77,9 @@ class _Evaluator:
     """Memoised, stored evaluations of the objective (keys: rounded parameter values)."""
 
     def __init__(self, problem_dir: Path, settings: Mapping[str, Any], folder: Path,
-                 progress: bool):
+                 progress: bool, *, residuals: bool = False):
         self.problem_dir, self.settings, self.folder = problem_dir, settings, folder
+        self.residuals = residuals
         self.folder.mkdir(parents=True, exist_ok=True)
         self.history: list[dict] = []
         self.progress = progress
@@ -97,7 +100,9 @@ class _Evaluator:
             except ValueError:
                 rec = None
         if rec is None:
-            rec = {"params": params, **evaluate_params(params, self.problem_dir, self.settings)}
+            kw = {"residuals": True} if self.residuals else {}
+            rec = {"params": params, **evaluate_params(params, self.problem_dir, self.settings,
+                                                       **kw)}
             write_json(path, rec)
             self.n_new += 1
         if not any(h["key"] == key for h in self.history):
@@ -156,6 +161,52 @@ def optimise(problem_dir: Path, settings: Mapping[str, Any],
 
 class _BudgetSpent(Exception):
     pass
+
+
+def least_squares(problem_dir: Path, settings: Mapping[str, Any],
+                  parameters: Mapping[str, Mapping[str, Any]], *, budget: int = 100,
+                  work_dir: Path, progress: bool = False,
+                  x0: Mapping[str, float] | None = None) -> dict:
+    """Bounded trust-region least squares (scipy ``least_squares``, "trf") on the signed
+    node-to-surface errors of the calibration positions, in log-parameter space.
+
+    Uses the residual vector rather than its MHD summary, so each iteration gains from every
+    skin node: a few parameters converge in a few tens of evaluations (finite-difference
+    Jacobian, 5 % log steps, counted in ``budget``). The best evaluation by the objective (mean
+    MHD) is returned, as for :func:`optimise`; evaluations are stored in
+    ``work_dir/least_squares`` and replayed on resume.
+    """
+    from scipy.optimize import least_squares as scipy_lsq
+
+    names = list(parameters)
+    lo = np.log([_bounds(parameters[n])[0] for n in names])
+    hi = np.log([_bounds(parameters[n])[1] for n in names])
+    ev = _Evaluator(Path(problem_dir), settings, Path(work_dir) / "least_squares", progress,
+                    residuals=True)
+    calibrate = list(settings["calibrate"])
+    size: list[int] = []
+
+    def fun(z):
+        if len(ev.history) >= budget:
+            raise _BudgetSpent
+        rec = ev(dict(zip(names, np.exp(np.clip(z, lo, hi)).tolist())))
+        res = rec.get("residual") or {}
+        if rec.get("error") or not all(p in res for p in calibrate):
+            # a failed solve: a large residual pushes the trust region back
+            return np.full(size[0] if size else 1, _PENALTY_MM)
+        r = np.concatenate([np.asarray(res[p], float) for p in calibrate])
+        if not size:
+            size.append(len(r))
+        return r
+
+    z0 = (np.log([x0[n] for n in names]) if x0 else 0.5 * (lo + hi)).astype(float)
+    z0 = np.clip(z0, lo + 1e-9, hi - 1e-9)
+    try:
+        scipy_lsq(fun, z0, jac="2-point", bounds=(lo, hi), diff_step=0.05, method="trf",
+                  x_scale=1.0, xtol=1e-3, ftol=1e-4, max_nfev=budget)
+    except _BudgetSpent:
+        pass
+    return _summary(ev.history, "least_squares")
 
 
 def _summary(history: list[dict], method: str) -> dict:
@@ -235,6 +286,12 @@ def fit_parameters(problem_dir: Path, settings: Mapping[str, Any], fit: Mapping[
         res = grid_search(problem_dir, settings, params, work_dir=work_dir,
                           scheduler=fit.get("scheduler"), n_workers=int(fit.get("n_workers", 2)),
                           progress=progress)
+    elif fit["method"] == "least_squares":
+        x0 = {n: float(get_param(settings["model"], n)) for n in params
+              if get_param(settings["model"], n) is not None}
+        res = least_squares(problem_dir, settings, params, budget=int(fit["budget"]),
+                            work_dir=work_dir, progress=progress,
+                            x0=x0 if len(x0) == len(params) else None)
     else:
         x0 = {}
         for n, spec in params.items():

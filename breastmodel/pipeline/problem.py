@@ -298,7 +298,7 @@ def score_position(problem: Problem, x: np.ndarray, position: str, *,
 
 
 def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
-                    settings: Mapping[str, Any]) -> dict:
+                    settings: Mapping[str, Any], *, residuals: bool = False) -> dict:
     """The fitting objective: stress-free estimate -> forward solve of every calibration
     position -> MHD on the skin. Never raises for a failed solve (NaN instead).
 
@@ -309,6 +309,8 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
     settings : ``{"model", "solver", "stress_free"}`` tables of the resolved config and
         ``"calibrate"`` (position names) and optionally ``"evaluate"`` (also scored, not in
         the objective)
+    residuals : also return ``residual`` {calibration position: signed node-to-surface
+        errors of the predicted skin nodes, mm} (the least-squares fit's vector)
 
     Returns
     -------
@@ -322,7 +324,7 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
     calibrate = list(settings["calibrate"])
     positions = calibrate + [p for p in settings.get("evaluate") or () if p not in calibrate]
     out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "forward_solves": 0,
-                           "error": None}
+                           "error": None, **({"residual": {}} if residuals else {})}
     try:
         X, info = stress_free_geometry(problem, model, settings["stress_free"],
                                        settings["solver"])
@@ -338,6 +340,12 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
             finally:
                 out["forward_solves"] += 1
             out["mhd_mm"][pos] = score_position(problem, state.x, pos)["mhd_mm"]
+            if residuals and pos in calibrate:
+                from breastmodel.evaluation import point_to_surface
+
+                d, _ = point_to_surface(state.x[skin_nodes(problem, len(state.x))],
+                                        *problem.skins[pos], signed=True)
+                out["residual"][pos] = d.tolist()
         out["objective"] = float(np.mean([out["mhd_mm"][p] for p in calibrate]))
     except Exception as exc:  # noqa: BLE001 - one failed point must not end a fit or sweep
         # (SolverError, inverted elements, and any failure inside the stress-free iteration

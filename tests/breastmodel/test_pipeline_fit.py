@@ -129,3 +129,39 @@ def test_paper_grid_size():
     assert fascia == [80.0, 120.0, 160.0, 200.0, 240.0]
     assert np.isclose(min(p["materials.breast_left.E|materials.breast_right.E"]
                           for p in grid), 0.1)
+
+
+def _analytic_residual(calls):
+    """A skin residual that is linear in (ln E, ln s) around (E_OPT, S_OPT) plus a small
+    quadratic term, zero at the optimum; its MHD-like objective is the mean |r|."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(200, 2))
+
+    def evaluate(params, problem_dir, settings, residuals=False):
+        calls.append(dict(params))
+        z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
+                      math.log(params["effects.skin.E"] / S_OPT)])
+        r = A @ z + 0.05 * (z @ z)
+        out = {"objective": float(np.mean(np.abs(r))), "mhd_mm": {"prone": 0.0},
+               "forward_solves": 4, "error": None}
+        if residuals:
+            out["residual"] = {"prone": r.tolist()}
+        return out
+    return evaluate
+
+
+def test_least_squares_converges_in_few_simulations_and_resumes(monkeypatch, tmp_path):
+    calls: list = []
+    monkeypatch.setattr(problem_mod, "evaluate_params", _analytic_residual(calls))
+    settings = {"calibrate": ["prone"]}
+    res = fitmod.least_squares(tmp_path, settings, PARAMS, budget=40, work_dir=tmp_path / "w",
+                               x0={"materials.breast_left.E": 2.5, "effects.skin.E": 2.0})
+    best = res["best"]["params"]
+    assert best["materials.breast_left.E"] == pytest.approx(E_OPT, rel=2e-3)
+    assert best["effects.skin.E"] == pytest.approx(S_OPT, rel=2e-3)
+    assert res["n_simulations"] == len(calls) <= 30
+    n = len(calls)
+    again = fitmod.least_squares(tmp_path, settings, PARAMS, budget=40,
+                                 work_dir=tmp_path / "w",
+                                 x0={"materials.breast_left.E": 2.5, "effects.skin.E": 2.0})
+    assert len(calls) == n and again["best"] == res["best"]  # replayed from storage
