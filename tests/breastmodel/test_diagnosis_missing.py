@@ -122,6 +122,24 @@ def test_the_diagnosis_ranks_the_hidden_skin_first(hidden_skin):
     assert set(where["positions"]) == {"prone", "supine", "supine_tilted"}
 
 
+def test_run_add_effect_from_a_diagnosed_run_starts_at_its_estimates(hidden_skin):
+    from breastmodel.commands.run import add_effect, from_run_config
+
+    root, _ = hidden_skin
+    run0 = root / "run0"
+    if not (run0 / "diagnosis.json").is_file():
+        main(["diagnose", str(run0), "--quiet", "--verify-top", "0"])
+    est = next(r["estimate"] for r in json.loads((run0 / "diagnosis.json").read_text())[
+        "missing"]["ranking"] if r["name"] == "skin")
+    fitted = json.loads((run0 / "params.json").read_text())["model"]
+    cfg = add_effect(from_run_config(run0), "skin", run0)
+    assert cfg["model"]["effects"]["skin"]["E"] == pytest.approx(est["effects.skin.E"])
+    assert cfg["model"]["materials"]["breast_left"]["E"] == fitted["materials"][
+        "breast_left"]["E"]  # the refit starts from the fitted model
+    assert cfg["fit"]["enabled"] and "effects.skin.E" in cfg["fit"]["parameters"]
+    assert cfg["stress_free"]["method"] == "none"  # the run's own settings carry over
+
+
 def test_adding_the_effect_lowers_the_worst_position_by_half(hidden_skin, capsys):
     root, prob = hidden_skin
     before = load_run(root / "run0")
