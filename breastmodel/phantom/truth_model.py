@@ -96,6 +96,13 @@ class TruthModel:
                    effects=d["effects"], mesh_size_mm=float(d["mesh_size_mm"]),
                    name=str(d.get("name", "custom")))
 
+    def run_model(self, *, drop: tuple[str, ...] = ()) -> dict:
+        """The truth as a run config's ``[model]`` table (materials by region name), without
+        the effects named in ``drop`` (a fitted model that lacks them)."""
+        names = {code: name for name, code in REGIONS.items()}
+        return {"materials": {names[k]: dict(v) for k, v in self.materials.items()},
+                "effects": {k: _thaw(v) for k, v in self.effects.items() if k not in drop}}
+
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2, sort_keys=True)
 
