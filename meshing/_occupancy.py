@@ -35,3 +35,17 @@ def distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.
     scene = _scene(vertices, faces)
     q = o3d.core.Tensor(np.asarray(points, np.float32))
     return scene.compute_distance(q).numpy().astype(np.float64)
+
+
+def projector(vertices: np.ndarray, faces: np.ndarray):
+    """Function (n, 3) mm -> (n, 3) mm giving the closest point of the surface (the
+    acceleration structure is built once, for many small queries)."""
+    import open3d as o3d
+
+    scene = _scene(vertices, faces)
+
+    def project(points: np.ndarray) -> np.ndarray:
+        q = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
+        return scene.compute_closest_points(q)["points"].numpy().astype(np.float64)
+
+    return project

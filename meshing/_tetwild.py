@@ -7,7 +7,25 @@ so that the caller decides which tets are inside which region.
 
 from __future__ import annotations
 
+import contextlib
+import os
+import tempfile
+
 import numpy as np
+
+
+@contextlib.contextmanager
+def _scratch_cwd():
+    """Run inside a temporary working directory: fTetWild's inside filter writes a debug
+    file ``__tracked_surface.stl`` into the current directory (its winding-number filter
+    calls ``get_tracked_surface``, which saves the surface it extracts)."""
+    old = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="ftetwild_") as tmp:
+        os.chdir(tmp)
+        try:
+            yield
+        finally:
+            os.chdir(old)
 
 
 def tetrahedralize(
@@ -33,14 +51,17 @@ def tetrahedralize(
     epsilon_mm : float
         Envelope half-width: how far the tet faces may deviate from the input, mm.
     keep_background : bool
-        Return every tet of the bounding box (True) instead of fTetWild's inside filter.
+        Return every tet of the bounding box (True) instead of fTetWild's inside filter
+        (False; that filter runs in a temporary working directory, see ``_scratch_cwd``).
     optimize_iterations, stop_energy
         fTetWild's optimisation budget: it stops after this many passes or once the worst
         AMIPS energy is below ``stop_energy`` (its default 10; 20 is faster and still gives
         aspect ratios well below 12 here).
     sizing : (points (k, 3), tets (l, 4), edge length (k,) mm), optional
-        Background tet mesh giving a spatially varying target edge length (coarse far from
-        the tissue, so that fTetWild spends little time on the empty bounding box).
+        Background tet mesh giving a spatially varying target edge length. fTetWild applies
+        it only after its main optimisation, which works at ``edge_mm`` everywhere: give a
+        coarse ``edge_mm`` (the largest size wanted) so that the main passes run on a coarse
+        mesh of the whole bounding box, and let the field refine where the tissue is.
 
     Returns
     -------
@@ -52,24 +73,26 @@ def tetrahedralize(
     v = np.ascontiguousarray(vertices, dtype=np.float64)
     f = np.ascontiguousarray(faces, dtype=np.int32)
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
-    nodes, tets = pytetwild.tetrahedralize(
-        v,
-        f,
-        edge_length_abs=float(edge_mm),
-        epsilon=float(epsilon_mm) / diag,
-        optimize=True,
-        simplify=True,
-        num_threads=int(threads),
-        num_opt_iter=int(optimize_iterations),
-        stop_energy=float(stop_energy),
-        quiet=True,
-        disable_filtering=bool(keep_background),
-        **(
-            {}
-            if sizing is None
-            else {"bg_vertices": sizing[0], "bg_tets": sizing[1], "bg_values": sizing[2]}
-        ),
-    )
+    guard = contextlib.nullcontext() if keep_background else _scratch_cwd()
+    with guard:
+        nodes, tets = pytetwild.tetrahedralize(
+            v,
+            f,
+            edge_length_abs=float(edge_mm),
+            epsilon=float(epsilon_mm) / diag,
+            optimize=True,
+            simplify=True,
+            num_threads=int(threads),
+            num_opt_iter=int(optimize_iterations),
+            stop_energy=float(stop_energy),
+            quiet=True,
+            disable_filtering=bool(keep_background),
+            **(
+                {}
+                if sizing is None
+                else {"bg_vertices": sizing[0], "bg_tets": sizing[1], "bg_values": sizing[2]}
+            ),
+        )
     nodes = np.asarray(nodes, dtype=np.float64)
     tets = np.asarray(tets, dtype=np.int64)
     e = nodes[tets[:, 1:]] - nodes[tets[:, :1]]

@@ -10,9 +10,11 @@ import SimpleITK as sitk
 
 from mechanics.mesh import REGIONS, Mesh
 from meshing import _occupancy, _tetwild
-from meshing.improve import relocate_free_nodes
+from meshing.improve import collapse_short_edges, relocate_boundary_nodes, relocate_free_nodes
 from meshing.labels import Grid, TissueMasks, repaired, tissue_masks
-from meshing.sets import named_sets
+from meshing.quality import element_quality
+from meshing.sets import named_sets, tet_faces
+from meshing.sizing import COARSE, sizing_field
 from meshing.surface import distance_to_mask_mm, tissue_surface
 
 log = logging.getLogger(__name__)
@@ -89,31 +91,6 @@ def _clean_isolated(tets: np.ndarray, region: np.ndarray) -> np.ndarray:
     return out
 
 
-def _grid_tets(lo: np.ndarray, hi: np.ndarray, step: float):
-    """Structured tet mesh of the box [lo, hi] (mm): each cube split into six tets."""
-    n = np.maximum(np.ceil((hi - lo) / step).astype(int), 1)
-    axes = [lo[a] + (hi[a] - lo[a]) * np.arange(n[a] + 1) / n[a] for a in range(3)]
-    pts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    idx = np.arange(len(pts)).reshape(n + 1)
-    corner = [idx[i : i + n[0], j : j + n[1], k : k + n[2]].ravel()
-              for i in (0, 1) for j in (0, 1) for k in (0, 1)]
-    c = np.stack(corner, 1)  # cube corners, bit order (i, j, k)
-    kuhn = [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]]
-    return pts, np.vstack([c[:, t] for t in kuhn]).astype(np.int32)
-
-
-def _sizing_field(vu, fu, size_mm: float):
-    """Target edge length on a background grid: ``size_mm`` inside the tissue and within
-    1.5 sizes of it, growing to 5 sizes far outside (the empty parts of the box)."""
-    lo, hi = vu.min(0), vu.max(0)
-    pad = 0.25 * np.linalg.norm(hi - lo)
-    pts, tets = _grid_tets(lo - pad, hi + pad, 2.0 * size_mm)
-    d = _occupancy.distance(vu, fu, pts)
-    d[_occupancy.inside(vu, fu, pts)] = 0.0
-    val = size_mm * np.clip(1.0 + (d - 1.5 * size_mm) / (1.125 * size_mm), 1.0, 5.0)
-    return pts, tets, val
-
-
 def _drop_boundary_slivers(nodes, tets, *, max_skew: float = 0.9, rounds: int = 4):
     """(M,) bool: tets to keep after removing flat tets that lie on the boundary.
 
@@ -121,9 +98,6 @@ def _drop_boundary_slivers(nodes, tets, *, max_skew: float = 0.9, rounds: int = 
     on the boundary too (a cap over a shallow dip), carries almost no volume; these are
     the typical worst elements of an envelope-constrained mesher.
     """
-    from meshing.quality import element_quality
-    from meshing.sets import tet_faces
-
     keep = np.ones(len(tets), bool)
     for _ in range(rounds):
         sub = np.flatnonzero(keep)
@@ -140,15 +114,48 @@ def _drop_boundary_slivers(nodes, tets, *, max_skew: float = 0.9, rounds: int = 
     return keep
 
 
-def _relocate(nodes, tets, region):
-    """Untangle flat tets by moving nodes that are not on the outer boundary (interface
-    nodes included: they move by a fraction of an element, inside the flat tets' span)."""
-    from meshing.sets import tet_faces
+def _surfaces(tets, region):
+    """Outer boundary faces and breast-muscle interface faces (oriented out of the muscle)."""
+    bf, _, sf, so = tet_faces(tets)
+    muscle = region == REGIONS["muscle"]
+    between = muscle[so[:, 0]] != muscle[so[:, 1]]
+    iface = np.where(muscle[so[between, 0]][:, None], sf[between], sf[between][:, ::-1])
+    return bf, iface
 
-    bf, _, _, _ = tet_faces(tets)
-    fixed = np.zeros(len(nodes), bool)
-    fixed[bf.ravel()] = True
-    return relocate_free_nodes(nodes, tets, ~fixed)
+
+def _improve(nodes, tets, region, vu, fu, vb, fb, *, epsilon: float, passes: int = 3):
+    """Repeat :func:`_improve_once` while a tet is flatter than skewness 0.9 (a collapse
+    frees nodes that the next relocation can move)."""
+    for _ in range(passes):
+        nodes, tets, region = _improve_once(nodes, tets, region, vu, fu, vb, fb, epsilon)
+        if element_quality(nodes, tets)["skewness"].max() <= 0.9:
+            break
+    return nodes, tets, region
+
+
+def _improve_once(nodes, tets, region, vu, fu, vb, fb, epsilon):
+    """Remove flat tets: move interior nodes (interface nodes included: they move by a
+    fraction of an element, inside the flat tets' span), slide outer-boundary nodes along
+    the tissue surface and interface nodes along the breast surface (the badly shaped
+    surface triangles that interior moves cannot mend), move interior nodes again, and
+    collapse the short edge of any tet still flatter than skewness 0.9."""
+    bf, iface = _surfaces(tets, region)
+    on_boundary = np.zeros(len(nodes), bool)
+    on_boundary[bf.ravel()] = True
+    on_interface = np.zeros(len(nodes), bool)
+    on_interface[iface.ravel()] = True
+    x = relocate_free_nodes(nodes, tets, ~on_boundary)
+    x = relocate_boundary_nodes(x, tets, bf, on_boundary & ~on_interface,
+                                _occupancy.projector(vu, fu),
+                                max_deviation=epsilon)
+    x = relocate_boundary_nodes(x, tets, iface, on_interface & ~on_boundary,
+                                _occupancy.projector(vb, fb),
+                                max_deviation=epsilon)
+    x = relocate_free_nodes(x, tets, ~on_boundary)
+    tets, kept = collapse_short_edges(x, tets, [bf, iface])
+    region = region[kept]
+    x, tets = _drop_unused(x, tets)
+    return x, tets, region
 
 
 def mesh_labels(
@@ -160,6 +167,7 @@ def mesh_labels(
     keep_gland: bool = False,
     surface_edge_mm: float | None = None,
     threads: int = 0,
+    coarse: float = COARSE,
 ) -> Mesh:
     """Tetrahedral mesh of breast and muscle tissue from a label map.
 
@@ -185,6 +193,11 @@ def mesh_labels(
         Edge length of the intermediate surfaces (default ``0.75 * size_mm``).
     threads : int
         fTetWild threads (0: all cores).
+    coarse : float
+        Largest element size as a multiple of ``size_mm`` (1 gives a uniform size). The
+        size is ``size_mm`` at the tissue surfaces of the breast mounds and grows with the
+        depth below them and in the thin tissue layers away from the mounds (see
+        :mod:`meshing.sizing`).
 
     Returns
     -------
@@ -203,6 +216,8 @@ def mesh_labels(
     del seed
     if not size_mm > 0:
         raise ValueError(f"meshing: size_mm must be positive, got {size_mm}")
+    if not coarse >= 1:
+        raise ValueError(f"meshing: coarse must be at least 1, got {coarse}")
     say = log.info if progress else log.debug
     t0 = time.perf_counter()
     masks = tissue_masks(labels)
@@ -229,9 +244,11 @@ def mesh_labels(
     v_all, f_all = v_all[used], remap[f_all]
 
     epsilon = 0.1 * size_mm  # tet faces stay within this of the surfaces
+    # fTetWild's main passes run at edge_mm over the whole bounding box and the sizing field
+    # refines afterwards: a coarse edge_mm halves the time (see _tetwild.tetrahedralize).
     nodes, tets = _tetwild.tetrahedralize(
-        v_all, f_all, edge_mm=size_mm, epsilon_mm=epsilon, threads=threads,
-        sizing=_sizing_field(vu, fu, size_mm),
+        v_all, f_all, edge_mm=3.0 * size_mm, epsilon_mm=epsilon, threads=threads,
+        sizing=sizing_field(vu, fu, masks, size_mm, coarse=coarse),
     )
     say("meshing: fTetWild %d tets (%.1f s)", len(tets), time.perf_counter() - t0)
 
@@ -258,7 +275,7 @@ def mesh_labels(
         region[in_gland & left] = REGIONS["gland_left"]
         region[in_gland & ~left] = REGIONS["gland_right"]
     nodes, tets = _drop_unused(nodes, tets)
-    nodes = _relocate(nodes, tets, region)
+    nodes, tets, region = _improve(nodes, tets, region, vu, fu, vb, fb, epsilon=epsilon)
     sets = named_sets(nodes, tets, region, grid=grid, masks=masks, x_mid=x_mid, size_mm=size_mm)
     mesh = Mesh(nodes=nodes, tets=tets, region=region, **sets)
     say("meshing: %d nodes, %d tets (%.1f s)", mesh.n_nodes, mesh.n_tets, time.perf_counter() - t0)

@@ -27,6 +27,13 @@ def boxes():
     return labels, mesh_labels(labels, size_mm=H)
 
 
+@pytest.fixture(scope="module")
+def boxes_uniform():
+    """Uniform element size (no grading): the interface embedding at a known size."""
+    labels = touching_boxes_labels(size=SIZE, split_y=SPLIT, spacing=1.0)
+    return labels, mesh_labels(labels, size_mm=H, coarse=1.0)
+
+
 def test_tet_volume_matches_the_enclosed_surface_volume(boxes):
     labels, mesh = boxes
     masks = tissue_masks(labels)
@@ -40,8 +47,8 @@ def test_tet_volume_matches_the_enclosed_surface_volume(boxes):
     assert vol[breast].sum() == pytest.approx(SIZE[0] * SPLIT * SIZE[2], rel=0.03)
 
 
-def test_interface_is_shared_flat_and_oriented_from_muscle_to_breast(boxes):
-    _, mesh = boxes
+def test_interface_is_shared_flat_and_oriented_from_muscle_to_breast(boxes_uniform):
+    _, mesh = boxes_uniform
     iface = mesh.face_sets["interface"]
     # every interface face is a face of exactly one breast tet and one muscle tet
     bf, bo, sf, so = tet_faces(mesh.tets)
