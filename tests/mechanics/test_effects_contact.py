@@ -205,7 +205,8 @@ def test_regularization_is_the_stick_stiffness_of_unloaded_points():
     # stiffness of a rigid tangential slide of the upper block = eps_T * interface area
     d = np.zeros((mesh.n_nodes, 3))
     d[mesh.node_sets["upper"], 0] = 1.0
-    assert abs(d.ravel() @ S @ d.ravel() - 100.0 * 100.0) <= 1e-9 * 1e4
+    expect = eff.values["tangential_penalty"] * 100.0  # kPa/mm * mm^2
+    assert abs(d.ravel() @ S @ d.ravel() - expect) <= 1e-9 * expect
     x[mesh.node_sets["upper"], 2] -= 0.02  # pressed together: no regularisation
     assert len(eff.regularization(X, x)[2]) == 0
     off = build_model(mesh, materials(1.0, 1.0), {"sliding": {"friction": 0.0}}).effects[0]
