@@ -139,18 +139,22 @@ def levelset_refine(
     """
     if iterations <= 0 or not mask.any():
         return mask.copy()
-    idx = np.argwhere(mask)
-    lo = np.maximum(idx.min(axis=0) - margin_vox, 0)
-    hi = np.minimum(idx.max(axis=0) + margin_vox + 1, mask.shape)
+    # bounding box from the axis projections (np.argwhere of a body-sized mask is ~1 GB)
+    ext = [np.flatnonzero(mask.any(axis=tuple(j for j in range(3) if j != i)))
+           for i in range(3)]
+    lo = np.maximum([e[0] - margin_vox for e in ext], 0)
+    hi = np.minimum([e[-1] + margin_vox + 1 for e in ext], mask.shape)
     sl = tuple(slice(a, b) for a, b in zip(lo, hi))
     sub_mask = sitk.GetImageFromArray(mask[sl].astype(np.uint8))
     sub_feat = sitk.RegionOfInterest(
         feature, [int(b - a) for a, b in zip(lo[::-1], hi[::-1])], [int(a) for a in lo[::-1]]
     )
     sub_mask.CopyInformation(sub_feat)
-    # zero level half-way between the mask's boundary voxels and their outside neighbours
-    init = sitk.SignedMaurerDistanceMap(sub_mask, insideIsPositive=True, squaredDistance=False,
-                                        useImageSpacing=False) + 0.5
+    # Zero level half-way between the mask's boundary voxels and their outside neighbours.
+    # The sparse-field level set builds its narrow band from the zero crossing alone, so a
+    # +-0.5 binary image starts it exactly where a signed distance map + 0.5 would, at a
+    # fraction of the cost.
+    init = sitk.Cast(sub_mask, sitk.sitkFloat32) - 0.5
     ls = sitk.ThresholdSegmentationLevelSetImageFilter()
     ls.SetLowerThreshold(float(lower))
     ls.SetUpperThreshold(float(upper))
@@ -174,6 +178,7 @@ def segment_volume(
     n4_shrink: int = 4,
     isotropic_mm: float | None = None,
     denoise_iterations: int = 3,
+    denoise_method: str = "gradient",
     skin_level: float = 0.7,
     levelset_iterations: int = 30,
     curvature: float = 0.5,
@@ -191,7 +196,7 @@ def segment_volume(
         User corrections: the region holding each point gets the seed's label.
     gland : bool
         Also label glandular tissue (3) inside the breast.
-    n4, n4_shrink, isotropic_mm, denoise_iterations
+    n4, n4_shrink, isotropic_mm, denoise_iterations, denoise_method
         Preprocessing options (see :func:`imaging.preprocess.preprocess`).
     skin_level : float
         Skin intensity as a fraction of fat; the air boundary sits at half of it.
@@ -212,7 +217,8 @@ def segment_volume(
     """
     check_volume(img, name=name, stage=STAGE)
     pre = preprocess(img, n4=n4, n4_shrink=n4_shrink, isotropic_mm=isotropic_mm,
-                     denoise_iterations=denoise_iterations, name=name)
+                     denoise_iterations=denoise_iterations, denoise_method=denoise_method,
+                     name=name)
     a = sitk.GetArrayFromImage(pre)
     sp = np.asarray(pre.GetSpacing(), float)[::-1]  # (z, y, x)
     vox_mm3 = float(np.prod(sp))
@@ -269,11 +275,12 @@ def segment_volume(
         raise ValueError(f"{STAGE}: {name}: empty body mask")
 
     # Skin markers: bright blobs outside the (opened) body; remove a ball around each.
+    opened = body_without_markers(body, spacing=sp[::-1], diameter_mm=marker_diameter_mm)
     markers_mm = detect_markers(pre, diameter_mm=marker_diameter_mm, n_expected=None,
-                                min_contrast=1.0, localise=False)
+                                min_contrast=1.0, localise=False, foreground=body,
+                                body=opened)
     marker_mask = np.zeros(a.shape, bool)
     if len(markers_mm):
-        opened = body_without_markers(body, spacing=sp[::-1], diameter_mm=marker_diameter_mm)
         r = 0.5 * marker_diameter_mm + 1.5
         for p in markers_mm:
             c = np.asarray(pre.TransformPhysicalPointToContinuousIndex(tuple(p)))[::-1]

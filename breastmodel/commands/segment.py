@@ -13,6 +13,7 @@ Config (TOML, all optional)::
     n4_shrink = 4
     isotropic_mm = 1.0   # omit to keep the grid
     denoise_iterations = 3
+    denoise_method = "gradient"   # or "curvature" (slower)
 
     [segment]
     gland = false
@@ -34,7 +35,7 @@ from typing import Any
 
 log = logging.getLogger("breastmodel.segment")
 
-PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations"}
+PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations", "denoise_method"}
 SEGMENT_KEYS = {"gland", "skin_level", "levelset_iterations", "curvature",
                 "marker_diameter_mm", "min_region_mm3", "positions"}
 

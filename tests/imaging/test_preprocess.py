@@ -80,13 +80,14 @@ def test_resample_isotropic_keeps_geometry():
         img.GetPixel(img.TransformPhysicalPointToIndex(p)), abs=1e-3)
 
 
-def test_denoise_lowers_noise_and_keeps_the_edge():
+@pytest.mark.parametrize("method", ["gradient", "curvature"])
+def test_denoise_lowers_noise_and_keeps_the_edge(method):
     img, box = _block()
     rng = np.random.default_rng(1)
     a = sitk.GetArrayFromImage(img)
     noisy = sitk.GetImageFromArray(a + rng.normal(0, 5.0, a.shape).astype(np.float32))
     noisy.CopyInformation(img)
-    out = sitk.GetArrayFromImage(denoise(noisy, iterations=5))
+    out = sitk.GetArrayFromImage(denoise(noisy, iterations=5, method=method))
     flat = np.zeros_like(box)
     flat[10:14, 12:-12, 12:-12] = True
     assert np.std(out[flat]) < 0.6 * 5.0
@@ -102,5 +103,7 @@ def test_preprocess_leaves_input_untouched_and_validates():
     out = preprocess(img, n4=False, denoise_iterations=1)
     assert np.array_equal(sitk.GetArrayFromImage(img), before)
     assert out.GetSize() == img.GetSize()
+    with pytest.raises(ValueError, match="denoising method"):
+        denoise(img, method="median")
     with pytest.raises(ValueError, match="preprocess: bad.nii is 2-D"):
         preprocess(sitk.Image(8, 8, sitk.sitkFloat32), name="bad.nii")

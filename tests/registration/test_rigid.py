@@ -13,7 +13,12 @@ from imaging.io import read_volume
 from imaging.preprocess import preprocess
 from imaging.subject import read_subject
 from registration.qa import rotation_error_deg, target_registration_error
-from registration.rigid import chest_wall_mask, landmark_transform, register_rigid
+from registration.rigid import (
+    chest_wall_mask,
+    landmark_transform,
+    refine_rigid,
+    register_rigid,
+)
 from registration.transforms import matrix_to_transform, read_transform, transform_points
 
 
@@ -74,6 +79,54 @@ def test_landmark_initialiser_handles_missing_and_mislabelled_markers():
 
     t, used, notes = landmark_transform(fixed, {"a": moving["a"]})
     assert t is None and "need 3" in notes[0]
+
+
+def _blobs(n=48, seed=0):
+    """Smooth asymmetric volume: six Gaussian blobs of different sizes, 2 mm voxels."""
+    rng = np.random.default_rng(seed)
+    z, y, x = np.mgrid[:n, :n, :n] * 2.0 - n
+    a = np.zeros((n, n, n), np.float32)
+    for _ in range(6):
+        c = rng.uniform(-0.5 * n, 0.5 * n, 3)
+        s = rng.uniform(4.0, 10.0)
+        a += np.exp(-((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2) / (2 * s * s))
+    img = sitk.GetImageFromArray(a)
+    img.SetSpacing((2.0, 2.0, 2.0))
+    img.SetOrigin((-float(n),) * 3)
+    return img
+
+
+def test_refinement_keeps_a_perfect_start():
+    """Registering a volume to itself from the identity: every other position has a worse
+    correlation, so the best-visited rule must return the identity exactly (a fixed-step
+    optimiser alone would take at least one step away from it)."""
+    img = _blobs()
+    pts = np.random.default_rng(1).uniform(-30, 30, (20, 3))
+    ident = sitk.Euler3DTransform()
+    res, metric = refine_rigid(img, img, ident, shrink=(2, 1), smooth_mm=(2.0, 0.0),
+                               sampling=0.2)
+    assert target_registration_error(res, ident, pts).max() < 1e-9
+    assert metric == pytest.approx(-1.0, abs=1e-6)
+
+
+def test_missing_markers_warn_and_fall_back(caplog):
+    """No fiducials: a warning, the moments/multi-start initialisation, and still aligned."""
+    img = _blobs()
+    true = sitk.Euler3DTransform((0.0, 0.0, 0.0), 0.05, -0.03, 0.08, (4.0, -3.0, 2.0))
+    # moving(x) = img(true^-1 x), so the registration must find true
+    moving = sitk.Resample(img, img, true.GetInverse(), sitk.sitkLinear, 0.0)
+    with caplog.at_level("WARNING"):
+        res = register_rigid(img, moving)
+    assert res.initialisation == "moments"
+    assert any("moments" in r.getMessage() for r in caplog.records)
+    pts = np.random.default_rng(1).uniform(-30, 30, (20, 3))
+    assert target_registration_error(res.transform, true, pts).mean() <= 0.5
+
+
+def test_chest_wall_mask_needs_muscle():
+    labels = sitk.Image(8, 8, 8, sitk.sitkUInt8)
+    with pytest.raises(ValueError, match="no muscle"):
+        chest_wall_mask(labels)
 
 
 @pytest.mark.slow
