@@ -17,15 +17,20 @@ import argparse
 import os
 import platform
 import resource
+import sys
 import time
 from pathlib import Path
 
-from breastmodel.config import write_json
-from breastmodel.diagnosis import diagnose, write_compare
-from breastmodel.diagnosis.candidates import add_to_config, candidate_by_name
-from breastmodel.phantom.simulated import make_simulated_phantom
-from breastmodel.phantom.truth_model import preset
-from breastmodel.pipeline import resolve_config, run_subject
+# bench/meshing.py would shadow the meshing package that the phantom imports
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+from breastmodel.config import write_json  # noqa: E402
+from breastmodel.diagnosis import diagnose, write_compare  # noqa: E402
+from breastmodel.diagnosis.candidates import add_to_config, candidate_by_name  # noqa: E402
+from breastmodel.phantom.simulated import make_simulated_phantom  # noqa: E402
+from breastmodel.phantom.truth_model import preset  # noqa: E402
+from breastmodel.pipeline import resolve_config, run_subject  # noqa: E402
 
 TIED = "materials.breast_left.E|materials.breast_right.E"
 #: effect -> (truth preset that has it, effect keys the fitted model drops)
