@@ -3,9 +3,10 @@ no-separation interface under a pulling load."""
 
 import numpy as np
 import pytest
-from breastlike import boundary_faces
+from breastlike import boundary_faces, breastlike_mesh, paper_model
 from zoo import box
 
+from mechanics.effects._interface import split_interface
 from mechanics.mesh import Mesh
 from mechanics.model import build_model
 from mechanics.solver import SolverError, SolverOptions, residual_and_tangent, solve
@@ -211,3 +212,20 @@ def test_regularization_is_the_stick_stiffness_of_unloaded_points():
     assert len(eff.regularization(X, x)[2]) == 0
     off = build_model(mesh, materials(1.0, 1.0), {"sliding": {"friction": 0.0}}).effects[0]
     assert len(off.regularization(X, x)[2]) == 0
+
+
+@pytest.mark.slow
+def test_soft_breast_supine_with_friction_converges():
+    """The paper-like model at the soft corner of the search box (breast 0.1, skin 20, fascia
+    80 kPa), supine, friction 0.1 with the default stick penalty: converges (it cycled with a
+    100 kPa/mm stick spring), and friction holds the interface back: its mean tangential
+    slide is smaller than without friction."""
+    mesh = split_interface(breastlike_mesh())
+    nodes = np.unique(mesh.face_sets["interface"])
+    slide = {}
+    for k in (0.1, 0.0):
+        st = solve(paper_model(mesh, 0.1, 20.0, 80.0, "supine", sliding={"friction": k}),
+                   options=SolverOptions(max_newton=30))
+        assert st.converged and st.load == 1.0
+        slide[k] = np.linalg.norm(st.u[nodes][:, [0, 2]], axis=1).mean()
+    assert slide[0.1] < slide[0.0]
