@@ -20,7 +20,7 @@ Config (TOML, all optional)::
     shrink = [4, 2, 1]
     smooth_mm = [2.0, 1.0, 0.0]
     iterations = 100           # per level
-    sampling = 0.05            # share of mask voxels at full resolution
+    sampling = 0.1             # share of mask voxels at full resolution
     learning_rate_mm = 0.5     # first step per unit of shrink factor
     fiducial_levels = 2        # finest levels run after a fiducial initialisation
     mask_margin_mm = 6.0       # chest-wall mask: muscle dilated by this
