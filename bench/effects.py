@@ -6,7 +6,8 @@ Prints a table and writes ``bench/results/effects.json``:
   time without it (``sliding`` is replaced by ``tied``, ``supports`` by the muscle support
   only, ``strain_stiffening`` is added instead of removed).
 
-Run: ``.venv/bin/python bench/effects.py [--cells 26,16,6,2] [--skip-ablation]``
+Run: ``.venv/bin/python bench/effects.py [--cells 26,16,6,2] [--skip-ablation]
+[--positions prone,supine]``
 """
 
 from __future__ import annotations
@@ -53,15 +54,19 @@ def materials() -> dict:
 
 def timed_solve(mesh, effects, options) -> dict:
     model = build_model(mesh, materials(), effects)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     try:
         st = solve(model, options=options)
     except SolverError as exc:
-        return {"converged": False, "seconds": time.perf_counter() - t0, "error": str(exc)}
+        return {"converged": False, "seconds": time.perf_counter() - t0,
+                "cpu_seconds": time.process_time() - c0, "error": str(exc),
+                "load": None if exc.state is None else float(exc.state.load)}
     steps = [e for e in st.log if e["converged"]]
     return {
         "converged": True,
         "seconds": time.perf_counter() - t0,
+        "cpu_seconds": time.process_time() - c0,
+        "load_average": os.getloadavg()[0],
         "load_steps": len(steps),
         "newton_per_step": [e["newton"] for e in steps],
         "newton_total": st.newton_iterations,
@@ -98,6 +103,7 @@ def main() -> int:
     ap.add_argument("--skin", type=float, default=PAPER["skin"], help="skin E, kPa")
     ap.add_argument("--fascia", type=float, default=PAPER["fascia"], help="fascia E, kPa")
     ap.add_argument("--friction", type=float, default=0.1, help="Coulomb coefficient k")
+    ap.add_argument("--positions", default=",".join(GRAVITY), help="comma-separated positions")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects.json"))
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
@@ -125,13 +131,13 @@ def main() -> int:
         tmp.replace(out)
 
     print(f"mesh: {mesh.n_tets} tets, {mesh.n_nodes} nodes")
-    print(f"{'position':<10}{'s':>8}{'steps':>7}{'newton/step':>24}{'max u mm':>10}")
-    for pos in GRAVITY:
+    print(f"{'position':<10}{'s':>8}{'cpu s':>8}{'steps':>7}{'newton/step':>24}{'max u mm':>10}")
+    for pos in args.positions.split(","):
         r = timed_solve(mesh, effects_config(pos), options)
         result["positions"][pos] = r
         save()
         if r["converged"]:
-            print(f"{pos:<10}{r['seconds']:8.1f}{r['load_steps']:7d}"
+            print(f"{pos:<10}{r['seconds']:8.1f}{r['cpu_seconds']:8.1f}{r['load_steps']:7d}"
                   f"{str(r['newton_per_step']):>24}{r['max_displacement_mm']:10.1f}", flush=True)
         else:
             print(f"{pos:<10}{r['seconds']:8.1f}  FAILED: {r['error'][:80]}")

@@ -261,19 +261,27 @@ class _Newton:
         At = A.T  # csc view of the lower triangle, no copy
         return lambda y: A @ y + At @ y - d * y
 
-    def regularized(self, A, u: np.ndarray, rel: float):
-        """Newton matrices to try when A is singular, in order: A + min(1, rel) S with S the
-        effects' regularising stiffness (``regularization(X, x)`` COO triplets, e.g. the stick
-        stiffness of frictional contact at zero pressure), then A + mu |diag(A)| on the
-        displacement block (Levenberg-Marquardt, mu = singular_shift * min(1, rel))."""
-        mu = min(1.0, rel)
+    def effect_shift(self, A, u: np.ndarray, mu: float):
+        """A + mu S, S the effects' regularising stiffness (``regularization(X, x)`` COO
+        triplets, e.g. the stick stiffness of frictional contact at zero pressure); None
+        when no effect offers one."""
         x = self.X + u.reshape(-1, 3)
         parts = [eff.regularization(self.X, x) for eff in self.model.effects
                  if hasattr(eff, "regularization")]
         parts = [p for p in parts if len(p[2])]
-        if parts:
-            r, c, v = (np.concatenate(q) for q in zip(*parts, strict=True))
-            yield (A + self.sys.extra_upper(r, c, mu * v, symmetric=self.symmetric)).tocsr()
+        if not parts:
+            return None
+        r, c, v = (np.concatenate(q) for q in zip(*parts, strict=True))
+        return (A + self.sys.extra_upper(r, c, mu * v, symmetric=self.symmetric)).tocsr()
+
+    def regularized(self, A, u: np.ndarray, rel: float):
+        """Newton matrices to try when A is singular, in order: A + min(1, rel) S (see
+        :meth:`effect_shift`), then A + mu |diag(A)| on the displacement block
+        (Levenberg-Marquardt, mu = singular_shift * min(1, rel))."""
+        mu = min(1.0, rel)
+        A_eff = self.effect_shift(A, u, mu)
+        if A_eff is not None:
+            yield A_eff
         nf = self.sys.n_free
         d = np.zeros(self.sys.n)
         d[:nf] = np.abs(A.diagonal()[:nf])
