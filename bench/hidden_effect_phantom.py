@@ -34,7 +34,7 @@ from breastmodel.pipeline import resolve_config, run_subject  # noqa: E402
 
 TIED = "materials.breast_left.E|materials.breast_right.E"
 #: effect -> (truth preset that has it, effect keys the fitted model drops)
-CASES = {"skin": ("default", ("skin",)), "ligaments": ("default", ("ligaments",)),
+CASES = {"skin": ("default", ("skin",)), "regions:asymmetry": ("asymmetric", ("regions",)),
          "regions:gland": ("gland", ("regions",)),
          "strain_stiffening": ("gent_breast", ("strain_stiffening",))}
 
@@ -47,7 +47,7 @@ def cpu() -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--effect", default="skin", choices=sorted(CASES))
-    ap.add_argument("--voxel", type=float, default=2.0, help="phantom voxel size, mm")
+    ap.add_argument("--voxel", type=float, default=1.0, help="phantom voxel size, mm")
     ap.add_argument("--out", type=Path, default=Path("/tmp/hidden_effect_phantom"))
     ap.add_argument("--budget", type=int, default=25)
     args = ap.parse_args()
@@ -90,7 +90,8 @@ def main() -> None:
     cfg1 = add_to_config(resolve_config({**raw, "model": r0["params"]["model"]}),
                          candidate_by_name(r0["params"]["model"], args.effect), start=est)
     step("run1")
-    r1 = run_subject(subj, cfg1, args.out / "run1", progress=True)
+    r1 = run_subject(subj, cfg1, args.out / "run1", progress=True,
+                     cache=args.out / "run0" / "cache")  # same segmentation and mesh
     done("run1")
     cmp = write_compare([args.out / "run0", args.out / "run1"], args.out / "compare")
     mhd = {p: t_["mhd_mm"]["values"] for p, t_ in cmp["positions"].items()}

@@ -32,8 +32,10 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "e.g. skin, sliding, strain_stiffening:fascia, ligaments:medial) and "
                         "fit its parameters too; repeatable")
     p.add_argument("--from", dest="from_run", type=Path, metavar="DIR",
-                   help="with --add-effect: a diagnosed run whose config (unless --config is "
-                        "given) and estimates start the refit")
+                   help="a finished run (a previous model revision): its stage cache is "
+                        "shared (same segmentation, registration and mesh), its fitted model "
+                        "and config start this run unless --config is given, and with "
+                        "--add-effect its diagnosis' estimates start the refit")
     return p
 
 
@@ -73,7 +75,12 @@ def run(args: argparse.Namespace) -> int:
         cfg = from_run_config(args.from_run)
     for name in args.add_effect:
         cfg = add_effect(cfg, name, args.from_run)
-    res = run_subject(args.subject, cfg, args.out, progress=not args.quiet)
+    cache = None
+    if args.from_run:
+        from breastmodel.pipeline.run import cache_of
+
+        cache = cache_of(args.from_run)
+    res = run_subject(args.subject, cfg, args.out, progress=not args.quiet, cache=cache)
     ran = sum(s["status"] == "ran" for s in res["stages"])
     print(f"run: {ran} stage(s) computed, {len(res['stages']) - ran} cached, "
           f"{res['wall_s']:.1f} s")

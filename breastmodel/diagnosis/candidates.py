@@ -217,7 +217,8 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
                 continue
             if p.name in NUMERICAL:
                 skipped.append({"name": f"parameter:{path}", "reason": "a numerical setting"})
-            elif p.name == "Jm" and table.get("law", "gent") != "gent":
+            elif p.name == "Jm" and table.get("law", "neo_hookean") != "gent" and name in (
+                    "skin", "fascia"):
                 continue  # inert under the Neo-Hookean law; the strain-stiffening option covers it
             elif p.name == "thickness":
                 skipped.append({"name": f"parameter:{path}", "reason": "membrane stiffness "

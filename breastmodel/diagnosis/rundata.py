@@ -2,7 +2,8 @@
 
 A run folder holds ``stages.json`` (stage name, label and cache key), ``config.toml`` (the
 resolved run config), ``params.json`` (the model the predictions used) and ``metrics.json``;
-the arrays live in the stage cache: ``cache/problem/<key>/`` (mesh and measured skins),
+the arrays live in the stage cache (``cache/``, or the one ``stages.json`` names when the
+run shared another run's cache): ``cache/problem/<key>/`` (mesh and measured skins),
 ``cache/stress_free/<key>/X.npy`` and ``cache/predict/<key>/predicted.npz`` per position.
 """
 
@@ -73,7 +74,10 @@ def load_run(out: str | Path) -> RunData:
     out = Path(out)
     if not out.is_dir():
         raise StageError("diagnose", "no such run folder", out)
+    from breastmodel.pipeline.run import cache_of
+
     stages = _read_json(out / "stages.json", out)["stages"]
+    cache = cache_of(out)
     params = _read_json(out / "params.json", out)
     metrics = _read_json(out / "metrics.json", out)
     if not (out / "config.toml").is_file():
@@ -85,7 +89,7 @@ def load_run(out: str | Path) -> RunData:
         rows = [s for s in stages if s["name"] == name and (label is None or s["label"] == label)]
         if not rows:
             raise StageError("diagnose", f"stages.json lists no {label or name!r} stage", out)
-        d = out / "cache" / name / rows[-1]["key"]
+        d = cache / name / rows[-1]["key"]
         if not d.is_dir():
             raise StageError("diagnose", f"the cached {label or name!r} stage is gone "
                              "(rerun `breastmodel run` with the same config)", d)

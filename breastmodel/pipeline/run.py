@@ -28,7 +28,7 @@ from breastmodel.errors import StageError
 
 log = logging.getLogger("breastmodel.pipeline")
 
-__all__ = ["Prepared", "RunResult", "prepare_subject", "run_problem", "run_subject"]
+__all__ = ["Prepared", "RunResult", "cache_of", "prepare_subject", "run_problem", "run_subject"]
 
 
 class RunResult(dict):
@@ -48,8 +48,9 @@ class Prepared:
 
 
 class _Runner:
-    def __init__(self, out: Path, progress: bool):
-        self.cache = Cache(out / "cache")
+    def __init__(self, out: Path, progress: bool, cache: Path | None = None):
+        self.cache_root = Path(cache).resolve() if cache else (out / "cache").resolve()
+        self.cache = Cache(self.cache_root)
         self.stages: list[dict] = []
         self.progress = progress
 
@@ -127,6 +128,17 @@ def _register(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
             raise StageError("register", str(exc), subject.root) from None
         shutil.rmtree(labels)
     return fn
+
+
+def cache_of(run_dir: str | Path) -> Path:
+    """The stage cache a finished run used (its own ``cache/`` unless it shared another)."""
+    run_dir = Path(run_dir)
+    stages = run_dir / "stages.json"
+    if stages.is_file():
+        c = json.loads(stages.read_text()).get("cache")
+        if c:
+            return Path(c)
+    return run_dir / "cache"
 
 
 def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
@@ -258,7 +270,8 @@ def _check_subject(subject, cfg: Mapping[str, Any]) -> list[str]:
 
 
 def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
-                    progress: bool = True, command: str = "run") -> Prepared:
+                    progress: bool = True, command: str = "run",
+                    cache: str | Path | None = None) -> Prepared:
     """Run (or reuse) the stages up to the problem folder: segment every position, register,
     mesh the reference and extract every measured skin in the reference frame.
 
@@ -279,7 +292,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     positions = _check_subject(subject, cfg)
     out.mkdir(parents=True, exist_ok=True)
     write_provenance(out, {"subject": str(subject_dir), **cfg}, command=command)
-    R = _Runner(out, progress)
+    R = _Runner(out, progress, cache)
 
     seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
     seg_dirs, seg_keys = {}, []
@@ -308,7 +321,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
 
 
 def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
-                progress: bool = True) -> RunResult:
+                progress: bool = True, cache: str | Path | None = None) -> RunResult:
     """Run the cached pipeline of one subject.
 
     Parameters
@@ -317,6 +330,8 @@ def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     cfg : resolved run config (:func:`breastmodel.pipeline.config.resolve_config`)
     out : output folder; the stage cache lives in ``out/cache``
     progress : print one line per stage
+    cache : another stage cache to use (model revisions of one subject share their
+        segmentation, registration and mesh: ``breastmodel run --from``)
 
     Returns
     -------
@@ -329,12 +344,13 @@ def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
         The first stage that meets bad input, naming the file and the problem.
     """
     t0 = time.perf_counter()
-    prep = prepare_subject(subject_dir, cfg, out, progress=progress)
+    prep = prepare_subject(subject_dir, cfg, out, progress=progress, cache=cache)
     return _model_stages(prep, cfg, Path(out), t0)
 
 
 def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
-                subject_id: str = "problem", progress: bool = True) -> RunResult:
+                subject_id: str = "problem", progress: bool = True,
+                cache: str | Path | None = None) -> RunResult:
     """The model half of the pipeline on a ready problem folder (mesh, gravity, measured
     skins: see :mod:`breastmodel.pipeline.problem`): [fit] -> stress-free -> predict ->
     outputs, cached like :func:`run_subject`. For synthetic measurements and tests."""
@@ -345,7 +361,7 @@ def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     meta = json.loads((problem_dir / "problem.json").read_text())
     out.mkdir(parents=True, exist_ok=True)
     write_provenance(out, {"subject": subject_id, **cfg}, command="run")
-    R = _Runner(out, progress)
+    R = _Runner(out, progress, cache)
 
     def copy(d: Path) -> None:
         shutil.copytree(problem_dir, d, dirs_exist_ok=True)
@@ -404,5 +420,6 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
                            subject_id=subject.id)
     res = RunResult(stages=R.stages, metrics=result, params=params, out=str(out),
                     wall_s=time.perf_counter() - t0)
-    write_json(out / "stages.json", {"stages": R.stages, "wall_s": res["wall_s"]})
+    write_json(out / "stages.json", {"stages": R.stages, "wall_s": res["wall_s"],
+                                     "cache": str(R.cache_root)})
     return res

@@ -18,7 +18,7 @@ from breastmodel.diagnosis import load_run, rank_candidates
 from breastmodel.diagnosis.candidates import add_to_config, candidate_by_name, enumerate_candidates
 from breastmodel.phantom.mounds import mound_problem
 from breastmodel.pipeline.config import resolve_config
-from breastmodel.pipeline.run import run_problem
+from breastmodel.pipeline.run import cache_of, run_problem
 
 NH = {"name": "neo_hookean", "nu": 0.49}
 BASE = {"materials": {"breast_left": {**NH, "E": 1.0}, "breast_right": {**NH, "E": 1.0},
@@ -145,7 +145,9 @@ def test_adding_the_effect_lowers_the_worst_position_by_half(hidden_skin, capsys
     before = load_run(root / "run0")
     cfg = add_to_config(_config(BASE, budget=40),
                         candidate_by_name(before.model, "skin"))
-    run_problem(prob, cfg, root / "run1", progress=False)
+    res = run_problem(prob, cfg, root / "run1", progress=False, cache=cache_of(root / "run0"))
+    assert [s["status"] for s in res["stages"] if s["name"] == "problem"] == ["skipped"]
+    assert not (root / "run1" / "cache").exists()  # the revision shares run0's stage cache
     after = load_run(root / "run1")
     assert _worst(after.metrics) <= 0.5 * _worst(before.metrics)
     # the recovered skin modulus is the truth's (4 kPa) within the fit's resolution
