@@ -22,7 +22,7 @@ Config (TOML, all optional)::
     iterations = 100           # per level
     sampling = 0.1             # share of mask voxels at full resolution
     learning_rate_mm = 0.5     # first step per unit of shrink factor
-    fiducial_levels = 2        # finest levels run after a fiducial initialisation
+    fine_levels = 2            # levels of the masked refinement (the finest)
     mask_margin_mm = 6.0       # chest-wall mask: muscle dilated by this
     marker_diameter_mm = 4.0
     seed = 0
@@ -41,7 +41,7 @@ import numpy as np
 log = logging.getLogger("breastmodel.register")
 
 REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
-                 "sampling", "learning_rate_mm", "fiducial_levels", "mask_margin_mm",
+                 "sampling", "learning_rate_mm", "fine_levels", "mask_margin_mm",
                  "marker_diameter_mm", "seed"}
 
 
@@ -180,7 +180,7 @@ def register_subject(
         raw, img = prepared(name)
         fid = find_fiducials(img, listed=listed.get(name), diameter_mm=diameter)
         opts = {k: cfg[k] for k in ("max_residual_mm", "marker_mask_mm", "iterations",
-                                    "sampling", "learning_rate_mm", "fiducial_levels", "seed")
+                                    "sampling", "learning_rate_mm", "fine_levels", "seed")
                 if k in cfg}
         if "shrink" in cfg:
             opts["shrink"] = tuple(int(v) for v in cfg["shrink"])
