@@ -19,7 +19,7 @@ Config (TOML, all optional)::
     marker_mask_mm = 8.0       # balls around the reference markers join the mask
     shrink = [4, 2, 1]
     smooth_mm = [2.0, 1.0, 0.0]
-    iterations = 100           # per level
+    iterations = 50            # per level (at most)
     sampling = 0.1             # share of mask voxels at full resolution
     learning_rate_mm = 0.5     # first step per unit of shrink factor
     fine_levels = 2            # levels of the masked refinement (the finest)
