@@ -343,8 +343,8 @@ def register_rigid(
         already close (the fiducials, or the moments start after a whole-body pass over the
         coarser levels), and a coarse level's blurred optimum would pull it away along the
         directions a smooth chest wall leaves loose. Measured on the 256^3 phantom with
-        fiducials: TRE 0.04-0.17 mm over repeated runs with two levels, 0.3-0.5 mm with all
-        three; on the small phantom's moments fallback 0.08-0.35 mm against 0.2-1.0 mm. The
+        fiducials: TRE 0.03-0.17 mm over repeated runs with two levels, 0.3-0.5 mm with all
+        three; on the small phantom's moments fallback 0.05-0.35 mm against 0.2-1.0 mm. The
         runs differ because the threads' partial sums of the metric arrive in varying
         order.
 
