@@ -165,3 +165,14 @@ def test_least_squares_converges_in_few_simulations_and_resumes(monkeypatch, tmp
                                  work_dir=tmp_path / "w",
                                  x0={"materials.breast_left.E": 2.5, "effects.skin.E": 2.0})
     assert len(calls) == n and again["best"] == res["best"]  # replayed from storage
+
+
+def test_least_squares_keeps_going_through_a_parameter_of_exactly_one(monkeypatch, tmp_path):
+    # a relative finite-difference step vanishes at ln p = 0; the stored evaluations are keyed
+    # by 6 digits, so such a step would return the same residual and stop the search there
+    calls: list = []
+    monkeypatch.setattr(problem_mod, "evaluate_params", _analytic_residual(calls))
+    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=40,
+                               work_dir=tmp_path / "w",
+                               x0={"materials.breast_left.E": 1.0, "effects.skin.E": 1.0})
+    assert res["best"]["params"]["materials.breast_left.E"] == pytest.approx(E_OPT, rel=2e-3)
