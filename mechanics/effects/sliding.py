@@ -74,7 +74,7 @@ RULES = {
 }
 
 
-def friction_law(r: np.ndarray, b: np.ndarray, sigma: float, *, stick_at_zero: bool = False):
+def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
     """Magnitude of the friction force from the trial force r and the bound b (mN).
 
     sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: a smooth minimum,
@@ -100,8 +100,7 @@ def friction_law(r: np.ndarray, b: np.ndarray, sigma: float, *, stick_at_zero: b
     phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), 0.5 * (1.0 + 1.0 / c))
     # r = b = 0 (the first iterate of a solve): no friction in the tangent, so the normal
     # pressure builds up first (measured: a stick tangent there makes supine solves stagnate)
-    if not stick_at_zero:
-        phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
+    phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
     phi_b = scale * np.where(h > 0, 0.5 * (c - (sigma**2 * b - (r - b)) / hs), 0.0)
     return phi, phi_r, phi_over_r, phi_b
 
