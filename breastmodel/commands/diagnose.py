@@ -31,6 +31,9 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="address of a running dask scheduler (tcp://host:8786)")
     p.add_argument("--verify-top", type=int, default=1,
                    help="check this many of the best candidates by a real evaluation")
+    p.add_argument("--rim-mm", type=float, default=None,
+                   help="leave skin nodes this close to the skin's open edge (the field-of-view "
+                        "cut) out of the ranking, mm (default 15; 0 keeps all)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from breastmodel.diagnosis.diagnose import diagnose
 
     d = diagnose(args.run_dir, n_workers=args.workers, scheduler=args.scheduler,
-                 verify_top=args.verify_top, progress=not args.quiet)
+                 verify_top=args.verify_top, rim_mm=args.rim_mm, progress=not args.quiet)
     m = d["missing"]
     print(m["verdict"])
     print(f"{'#':>3} {'candidate':<40} {'explained':>9} {'pred. RMS':>9}  significant")

@@ -18,7 +18,7 @@ __all__ = ["diagnose", "write_diagnosis_html"]
 
 
 def diagnose(run_dir: str | Path, *, n_workers: int = 0, scheduler: str | None = None,
-             verify_top: int = 1, progress: bool = True) -> dict:
+             verify_top: int = 1, rim_mm: float | None = None, progress: bool = True) -> dict:
     """Diagnose the run in ``run_dir``; returns what ``diagnosis.json`` holds.
 
     Raises
@@ -35,8 +35,9 @@ def diagnose(run_dir: str | Path, *, n_workers: int = 0, scheduler: str | None =
     regions = skin_regions(run.problem.mesh, run.X[:run.problem.mesh.n_nodes])
     maps = {p: failure_map(run, p, regions=regions) for p in run.positions}
     where = failure_tables(run, maps=maps, regions=regions)
+    kw = {} if rim_mm is None else {"rim_mm": rim_mm}
     missing = rank_candidates(run, n_workers=n_workers, scheduler=scheduler,
-                              verify_top=verify_top, progress=progress)
+                              verify_top=verify_top, progress=progress, **kw)
     out = {"subject": run.subject, "run": str(run.out), "where": where, "missing": missing}
     write_json(run.out / "diagnosis.json", out)
     write_diagnosis_html(run.out / "diagnosis.html", out, maps)

@@ -17,6 +17,11 @@ credited for what re-fitting the existing parameters alone achieves (the baselin
 solve without the candidate). The top candidates are then checked by a real (nonlinear)
 evaluation at the estimated parameters.
 
+The rim of the skin (nodes within ``rim_mm`` of its open edge, where the mesh ends at the
+field-of-view cut) is left out of the residual: there the model's truncation boundary
+conditions differ from the body's, which no physical effect explains; the error maps still
+show it.
+
 Noise floor: with the full-field inverse the reference position is reproduced by
 construction, so its residual is what meshing and segmentation leave (the floor); otherwise
 the best-fitting position stands in for it. A candidate explains "more than the noise" when
@@ -46,6 +51,8 @@ __all__ = ["evaluate_model", "rank_candidates", "SIGNIFICANT_FLOOR_FRACTION"]
 
 #: Log step of the finite differences (about 22 %).
 STEP = 0.2
+#: Default width of the skin rim left out of the residual, mm (about two 8 mm elements).
+RIM_MM = 15.0
 #: A candidate must lower the residual RMS by this fraction of the noise floor ...
 SIGNIFICANT_FLOOR_FRACTION = 0.25
 #: ... and by at least this much, mm ...
@@ -121,7 +128,7 @@ def _fit_bounds(cfg: Mapping[str, Any], path: str) -> tuple[float, float]:
 def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int = 0,
                     scheduler: str | None = None, verify_top: int = 1,
                     candidates: Sequence[Candidate] | None = None,
-                    progress: bool = True) -> dict:
+                    rim_mm: float = RIM_MM, progress: bool = True) -> dict:
     """Score every candidate missing effect of a finished run.
 
     Parameters
@@ -133,6 +140,8 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         default 0 evaluates in this process)
     verify_top : how many of the best significant candidates get a nonlinear check
     candidates : override the enumeration (tests, or a user's own list)
+    rim_mm : skin nodes closer than this to the skin's open edge (the field-of-view cut) are
+        left out of the residual, mm (0 keeps every node)
 
     Returns
     -------
@@ -199,22 +208,25 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         raise RuntimeError(f"diagnose: the fitted model itself failed to solve: "
                            f"{res['base']['error']}")
 
+    # ---- geometry of the residual vector: which entries are which position / region
+    nodes = skin_nodes(problem, mesh.n_nodes)
+    keep = _away_from_rim(mesh, nodes, run.X[:mesh.n_nodes], rim_mm)
+    n_skin = int(keep.sum())
+    region_masks = {k: m[keep] for k, m in _regions(problem, nodes, run.X[:mesh.n_nodes],
+                                                     skin_node_regions(mesh)).items()}
+    slices = {p: slice(i * n_skin, (i + 1) * n_skin) for i, p in enumerate(obj_pos)}
+
     def vec(name: str, which: Sequence[str] = obj_pos) -> np.ndarray | None:
         r = res[name]
         if r["status"] != "ok":
             return None
-        return np.concatenate([np.asarray(r["result"]["residual"][p], float) for p in which])
-
-    # ---- geometry of the residual vector: which entries are which position / region
-    n_skin = len(res["base"]["result"]["residual"][positions[0]])
-    nodes = skin_nodes(problem, mesh.n_nodes)
-    region_masks = _regions(problem, nodes, run.X[:mesh.n_nodes], skin_node_regions(mesh))
-    slices = {p: slice(i * n_skin, (i + 1) * n_skin) for i, p in enumerate(obj_pos)}
+        return np.concatenate([np.asarray(r["result"]["residual"][p], float)[keep]
+                               for p in which])
 
     def rms(v):
         return float(np.sqrt(np.mean(np.square(v)))) if len(v) else math.nan
 
-    all_base = {p: np.asarray(res["base"]["result"]["residual"][p]) for p in positions}
+    all_base = {p: np.asarray(res["base"]["result"]["residual"][p])[keep] for p in positions}
     if inverse and problem.reference in all_base:
         floor = rms(all_base[problem.reference])
         floor_from = f"reference position {problem.reference!r} (reproduced by construction)"
@@ -333,7 +345,8 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         for r, rec in zip(todo, run_sweep(fn, vpoints, work_dir, scheduler=scheduler,
                                           n_workers=n_workers, progress=progress)):
             if rec["status"] == "ok":
-                rv = np.concatenate([np.asarray(rec["result"]["residual"][p]) for p in obj_pos])
+                rv = np.concatenate([np.asarray(rec["result"]["residual"][p])[keep]
+                                     for p in obj_pos])
                 r["verified"] = {"rms_mm": rms(rv), "mhd_mm": rec["result"]["mhd_mm"],
                                  "per_position": per_position(rv)}
             else:
@@ -361,9 +374,29 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                      "refit_estimate": {q: theta0[q] * math.exp(zq)
                                         for q, zq in zip(fitted, z_base)}},
         "fitted_parameters": fitted,
+        "rim_mm": float(rim_mm), "n_skin_nodes": int(len(keep)), "n_scored_nodes": n_skin,
         "ranking": ranking, "skipped": skipped, "failed": failed,
         "n_evaluations": len(points) + len(todo), "verdict": verdict,
     }
+
+
+def _away_from_rim(mesh, nodes: np.ndarray, X: np.ndarray, rim_mm: float) -> np.ndarray:
+    """(n_skin,) bool: skin nodes farther than ``rim_mm`` from the skin's open edge (edges
+    of one skin triangle only). All True when the skin is closed or ``rim_mm`` <= 0."""
+    from scipy.spatial import cKDTree
+
+    faces = np.asarray(mesh.face_sets["skin"])
+    e = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    uniq, count = np.unique(e, axis=0, return_counts=True)
+    edge_nodes = np.unique(uniq[count == 1])
+    if rim_mm <= 0 or not len(edge_nodes):
+        return np.ones(len(nodes), bool)
+    d, _ = cKDTree(X[edge_nodes]).query(X[nodes])
+    keep = d > rim_mm
+    if keep.sum() < 0.2 * len(nodes):
+        raise ValueError(f"diagnose: a {rim_mm} mm rim leaves {int(keep.sum())} of "
+                         f"{len(nodes)} skin nodes; use a smaller rim_mm")
+    return keep
 
 
 def _regions(problem, nodes: np.ndarray, X: np.ndarray, node_region: np.ndarray,

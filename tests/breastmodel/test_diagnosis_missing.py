@@ -114,7 +114,8 @@ def test_the_diagnosis_ranks_the_hidden_skin_first(hidden_skin):
     assert best["explained"] > 0.9
     # the checked (nonlinear) residual of the best candidate is far below the current one
     assert best["verified"]["rms_mm"] < 0.6 * d["baseline"]["rms_mm"]
-    assert sum(r["significant"] for r in d["ranking"]) <= 3
+    # partial stand-ins (stiffening, asymmetry also reduce the sag) stay far behind
+    assert d["ranking"][1]["predicted_rms_mm"] > 4 * best["predicted_rms_mm"]
     assert "missing effect: skin" in d["verdict"]
     html = (root / "run0" / "diagnosis.html").read_text()
     assert "data:image/png;base64," in html and "--add-effect skin" in html
