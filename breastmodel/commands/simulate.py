@@ -50,7 +50,8 @@ log = logging.getLogger("breastmodel.simulate")
 
 _TOP_KEYS = ("materials", "supports", "gravity", "point_loads", "effects", "solver")
 _SOLVER_KEYS = ("tol", "max_newton", "initial_steps", "min_step", "max_cutbacks",
-                "linear_solver", "formulation", "grow_below", "line_search")
+                "linear_solver", "formulation", "grow_below", "line_search", "stagnate_after",
+                "stagnate_above", "singular_shift")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
