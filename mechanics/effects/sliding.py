@@ -196,6 +196,7 @@ class Sliding(_InterfaceContact):
         self.anchor_facet: np.ndarray | None = None
         self.anchor_bary = np.zeros((P, 3))
         self.anchor_normal = np.zeros((P, 3))
+        self._begun = None  # (x, state before the update) of the last begin_step
 
     def weights(self, X: np.ndarray) -> np.ndarray:
         """(P,) reference area of each contact point, mm^2."""
@@ -276,6 +277,16 @@ class Sliding(_InterfaceContact):
     def begin_step(self, X, x):
         if np.array_equal(x, X):  # first step of a new solve: forget the last solve's state
             self.reset()
+        # A cut-back starts the step again from the same converged x: update from the state
+        # the first call at this x started from, so that the update happens once per
+        # converged state (each repeated update relaxed the friction forces further, and the
+        # augmented multipliers grew by the penalty force at every retry).
+        if self._begun is not None and np.array_equal(self._begun[0], x):
+            (self.multiplier, self.anchor_facet, self.anchor_bary,
+             self.anchor_normal) = (None if a is None else a.copy() for a in self._begun[1])
+        else:
+            self._begun = (x.copy(), tuple(None if a is None else a.copy() for a in (
+                self.multiplier, self.anchor_facet, self.anchor_bary, self.anchor_normal)))
         if self.method == "augmented":
             self.multiplier = self._normal(X, x, hessian=False)[4].copy()
         if self.values["friction"] == 0.0:
@@ -304,6 +315,7 @@ class Sliding(_InterfaceContact):
         """Forget friction anchors and multipliers (start of a new solve from scratch)."""
         self.anchor_facet = None
         self.multiplier = np.zeros(len(self.sN))
+        self._begun = None
 
     def regularization(self, X: np.ndarray, x: np.ndarray):
         """COO triplets (dof numbering, mN/mm) of the stick stiffness eps_T w B^T P0 B of the

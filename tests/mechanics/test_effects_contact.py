@@ -229,3 +229,27 @@ def test_soft_breast_supine_with_friction_converges():
         assert st.converged and st.load == 1.0
         slide[k] = np.linalg.norm(st.u[nodes][:, [0, 2]], axis=1).mean()
     assert slide[0.1] < slide[0.0]
+
+
+def test_begin_step_updates_once_per_converged_state():
+    """A cut-back calls begin_step again at the same converged x: the friction anchors and the
+    augmented multipliers must come out as after one call (they used to be updated again,
+    relaxing the friction forces and growing the multipliers at every retry)."""
+    mesh = stack(((3, 3, 1), (10.0, 10.0, 2.0), (0.0, 0.0, 0.0)),
+                 ((2, 2, 1), (10.0, 10.0, 4.0), (0.0, 0.0, 2.0)))
+    X = mesh.nodes
+    eff = build_model(mesh, materials(1.0, 1.0), {
+        "sliding": {"friction": 0.1, "method": "augmented"}}).effects[0]
+    eff.begin_step(X, X.copy())
+    x = X.copy()
+    up = mesh.node_sets["upper"]
+    x[up, 2] -= 0.01  # pressed on: a friction bound
+    x[up, 0] += 0.5  # sheared far beyond it: every point slips
+    eff.begin_step(X, x.copy())
+    once = (eff.multiplier.copy(), eff.anchor_bary.copy(), eff.anchor_facet.copy())
+    assert np.abs(once[0]).max() > 0  # the premise: the update did something
+    for _ in range(3):
+        eff.begin_step(X, x.copy())
+    np.testing.assert_array_equal(eff.multiplier, once[0])
+    np.testing.assert_array_equal(eff.anchor_bary, once[1])
+    np.testing.assert_array_equal(eff.anchor_facet, once[2])
