@@ -236,7 +236,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
     floor = max(floor, SIGNIFICANT_MIN_MM)
 
     r0 = vec("base")
-    J_theta, th_lo, th_hi = [], [], []
+    J_theta, th_lo, th_hi, th_names = [], [], [], []
     for q in fitted:
         rq = vec(f"theta|{q}")
         if rq is None:
@@ -246,19 +246,24 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         lo, hi = _fit_bounds(cfg, q)
         th_lo.append(math.log(lo / theta0[q]))
         th_hi.append(math.log(hi / theta0[q]))
+        th_names.append(q)
 
-    def solve(extra_cols, lo, hi):
-        cols = J_theta + extra_cols
+    def solve(extra_cols, lo, hi, inert=()):
+        """Bounded linear re-fit; fitted parameters in ``inert`` (made inert by the
+        candidate, e.g. moduli that the regions effect overrides) are left out."""
+        use = [i for i, q in enumerate(th_names) if not set(q.split("|")) & set(inert)]
+        cols = [J_theta[i] for i in use] + extra_cols
         if not cols:
-            return r0.copy(), np.zeros(0)
+            return r0.copy(), {}, np.zeros(0)
         A = np.column_stack(cols)
-        lb = np.array(th_lo + lo, float)
-        ub = np.array(th_hi + hi, float)
+        lb = np.array([th_lo[i] for i in use] + lo, float)
+        ub = np.array([th_hi[i] for i in use] + hi, float)
         ub = np.maximum(ub, lb + 1e-12)
         sol = lsq_linear(A, -r0, bounds=(lb, ub), method="bvls")
-        return r0 + A @ sol.x, sol.x
+        z_th = {th_names[i]: float(z) for i, z in zip(use, sol.x)}
+        return r0 + A @ sol.x, z_th, sol.x[len(use):]
 
-    r_base, z_base = solve([], [], [])
+    r_base, z_base, _ = solve([], [], [])
     ss_base = float(r_base @ r_base)
     rms_now = rms(r0)
     rms_base = rms(r_base)
@@ -304,10 +309,10 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
             labels.append(f)
         if not ok:
             continue
-        r_c, z = solve(cols, lo, hi)
+        r_c, z_theta, z = solve(cols, lo, hi, inert=c.replaces)
         ss = float(r_c @ r_c)
-        z_theta, z_c = z[:len(J_theta)], dict(zip(labels, z[len(J_theta):]))
-        est = {q: theta0[q] * math.exp(zq) for q, zq in zip(fitted, z_theta)}
+        z_c = dict(zip(labels, z))
+        est = {q: theta0[q] * math.exp(zq) for q, zq in z_theta.items()}
         est.update({f: float(c.start[f]) * math.exp(z_c[f]) for f in c.free})
         explained = 1.0 - ss / ss_base if ss_base > 0 else 0.0
         drop = rms_base - rms(r_c)
@@ -372,7 +377,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         "baseline": {"rms_mm": rms_now, "rms_after_refit_mm": rms_base,
                      "per_position": per_position(r_base), "mhd_mm": base_mhd,
                      "refit_estimate": {q: theta0[q] * math.exp(zq)
-                                        for q, zq in zip(fitted, z_base)}},
+                                        for q, zq in z_base.items()}},
         "fitted_parameters": fitted,
         "rim_mm": float(rim_mm), "n_skin_nodes": int(len(keep)), "n_scored_nodes": n_skin,
         "ranking": ranking, "skipped": skipped, "failed": failed,
