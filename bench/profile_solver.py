@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import dataclasses
+import os
 import pstats
 import sys
 import time
@@ -26,6 +28,9 @@ def main(argv=None) -> int:
     ap.add_argument("--E", type=float, default=1.0)
     ap.add_argument("--top", type=int, default=25)
     ap.add_argument("--no-profile", action="store_true")
+    ap.add_argument("--residuals", action="store_true", help="print the residual history")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a SolverOptions field, e.g. --option reuse_below=1.0")
     ap.add_argument("--repeat", type=int, default=2, help="solves (the first is cold)")
     args = ap.parse_args(argv)
     from zoo import hemisphere
@@ -37,7 +42,16 @@ def main(argv=None) -> int:
     model = build_model(mesh, {1: {"name": "neo_hookean", "E": args.E, "nu": 0.49}},
                         {"gravity": {"direction": (0, 0, -1), "density": 1000.0, "g": 9.81},
                          "fixed": {"node_set": "fixed"}})
-    opt = SolverOptions(tol=1e-8)
+    fields = {f.name: f.type for f in dataclasses.fields(SolverOptions)}
+    extra = {}
+    for item in args.option:
+        key, val = item.split("=", 1)
+        if key not in fields:
+            ap.error(f"unknown solver option {key!r}")
+        extra[key] = val if fields[key] in ("str", str) else (
+            val.lower() in ("1", "true") if fields[key] in ("bool", bool) else
+            type(getattr(SolverOptions(), key))(val))
+    opt = SolverOptions(tol=1e-8, **extra)
     prof = None if args.no_profile else cProfile.Profile()
     for k in range(args.repeat):
         if prof is not None and k == args.repeat - 1:
@@ -47,13 +61,21 @@ def main(argv=None) -> int:
         w, c = time.perf_counter() - w0, time.process_time() - c0
         if prof is not None and k == args.repeat - 1:
             prof.disable()
-        split = {key: sum(e[f"t_{key}"] for e in st.log) for key in ("assembly", "factor",
-                                                                      "solve")}
+        parts = ("assembly", "factor", "solve")
+        split = {key: sum(e[f"t_{key}"] for e in st.log) for key in parts}
+        cpu = {key: sum(e.get(f"cpu_{key}", 0.0) for e in st.log) for key in parts}
+        fac = sum(e.get("factorizations", 0) for e in st.log)
+        kry = sum(e.get("krylov_iterations", 0) for e in st.log)
         print(f"solve {k} ({'cold' if k == 0 else 'warm'}): wall {w:.2f} s cpu {c:.2f} s "
-              f"newton {st.newton_iterations} steps {st.load_steps} "
-              + " ".join(f"{key} {v:.2f}" for key, v in split.items())
+              f"newton {st.newton_iterations} steps {st.load_steps} factorizations {fac} "
+              f"krylov {kry} wall/cpu "
+              + " ".join(f"{key} {split[key]:.2f}/{cpu[key]:.2f}" for key in parts)
               + f" max|u| {st.max_displacement():.10f} mm res "
-              f"{st.log[-1]['residuals'][-1]:.2e} peak {peak_rss_mb():.0f} MB")
+              f"{st.log[-1]['residuals'][-1]:.2e} peak {peak_rss_mb():.0f} MB "
+              f"load {os.getloadavg()[0]:.1f}", flush=True)
+        if args.residuals:
+            print("  residuals " + " ".join(f"{r:.1e}" for e in st.log
+                                            for r in e["residuals"]))
     if prof is not None:
         pstats.Stats(prof).sort_stats("cumulative").print_stats(args.top)
     return 0

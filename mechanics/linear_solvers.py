@@ -1,13 +1,15 @@
 """Pluggable sparse direct solvers with a reused symbolic analysis.
 
-``"scipy"``: SuperLU (always available). ``"pardiso"``: MKL PARDISO through pypardiso
-(symmetric indefinite mode on the upper triangle, analysis redone only when the pattern
-changes). ``"auto"``: PARDISO when importable, else SuperLU.
+``"scipy"``: SuperLU (always available). ``"pardiso"``: MKL PARDISO (through pypardiso's
+library loader, called directly by ctypes): symmetric indefinite mode on the upper triangle,
+a single-precision factorisation refined to double-precision accuracy, analysis redone only
+when the pattern changes. ``"auto"``: PARDISO when importable, else SuperLU.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import threading
 from ctypes.util import find_library
@@ -17,6 +19,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from mechanics.system import full_from_upper
+
+# Intel OpenMP threads spin 200 ms after each parallel region by default, holding the cores
+# that the Newton loop's numpy and OpenBLAS calls need next (measured on the 2-core machine:
+# a vector norm right after a 2-thread PARDISO solve took 6.5 ms instead of 0.03 ms). Read
+# when MKL's OpenMP runtime starts, i.e. at the first PARDISO call.
+os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 
 class SingularSystem(RuntimeError):
@@ -41,82 +49,194 @@ class ScipySolver:
     def solve(self, b: np.ndarray) -> np.ndarray:
         return self._lu.solve(b)
 
+    precondition = solve
+
 
 _POOL = threading.local()
 
+#: iparm (1-based index: value) of each PARDISO configuration; everything else is 0.
+#: "single": single-precision factorisation (iparm 28), half the memory and about half the
+#: time of double (150k-tet hemisphere, 105k unknowns, 99M entries in L, one thread: 3.0 s
+#: against 5.5 s), refined to double accuracy in :meth:`PardisoSolver.solve`; for the
+#: symmetric saddle-point tangent 1x1 diagonal pivots (iparm 21 = 0): with K_uu positive
+#: definite and a negative pressure block the matrix is quasi-definite, so LDL^T exists in
+#: any order, and Bunch-Kaufman's 2x2 pivots cost 30 % more time for the same fill.
+#: "double": the robust fallback (Bunch-Kaufman; scaling and weighted matching for
+#: unsymmetric matrices), used when a single-precision solve cannot be refined.
+_COMMON = {1: 1, 2: 2, 8: 0, 35: 1}  # our iparms; METIS; no PARDISO refinement; 0-based
+_IPARM = {
+    ("single", -2): {**_COMMON, 10: 8, 21: 0, 28: 1},
+    ("double", -2): {**_COMMON, 10: 8, 21: 1},
+    ("single", 11): {**_COMMON, 10: 13, 11: 1, 13: 1, 28: 1},
+    ("double", 11): {**_COMMON, 10: 13, 11: 1, 13: 1},
+}
+
+
+class _Handle:
+    """One PARDISO instance (internal memory pointer, iparm, analysed pattern)."""
+
+    def __init__(self, lib, mtype: int, precision: str):
+        self.lib, self.mtype, self.precision = lib, mtype, precision
+        self.dtype = np.float32 if precision == "single" else np.float64
+        self.pt = np.zeros(64, np.int64)
+        self.iparm = np.zeros(64, np.int32)
+        for k, v in _IPARM[(precision, mtype)].items():
+            self.iparm[k - 1] = v
+        self.ia = self.ja = None
+        self.a = None
+        self.n = 0
+
+    def call(self, phase: int, b: np.ndarray | None = None) -> np.ndarray | None:
+        n = self.n
+        err = ctypes.c_int32(0)
+        if b is None:
+            rhs = x = np.zeros(1, self.dtype)
+        else:
+            rhs = np.ascontiguousarray(b, dtype=self.dtype)
+            x = np.empty_like(rhs)
+        i32 = ctypes.POINTER(ctypes.c_int32)
+        perm = np.zeros(1, np.int32)
+        self.lib.pardiso(
+            self.pt.ctypes.data_as(ctypes.POINTER(ctypes.c_int64)),
+            ctypes.byref(ctypes.c_int32(1)), ctypes.byref(ctypes.c_int32(1)),
+            ctypes.byref(ctypes.c_int32(self.mtype)), ctypes.byref(ctypes.c_int32(phase)),
+            ctypes.byref(ctypes.c_int32(n)), self.a.ctypes.data_as(ctypes.c_void_p),
+            self.ia.ctypes.data_as(i32), self.ja.ctypes.data_as(i32), perm.ctypes.data_as(i32),
+            ctypes.byref(ctypes.c_int32(1)), self.iparm.ctypes.data_as(i32),
+            ctypes.byref(ctypes.c_int32(0)), rhs.ctypes.data_as(ctypes.c_void_p),
+            x.ctypes.data_as(ctypes.c_void_p), ctypes.byref(err))
+        if err.value != 0:
+            raise SingularSystem(f"PARDISO error {err.value} in phase {phase} "
+                                 f"({_ERRORS.get(err.value, 'see the MKL manual')})")
+        return None if b is None else x
+
+    def factorize(self, A: sp.csr_matrix) -> None:
+        same = (self.ia is not None and self.n == A.shape[0]
+                and np.array_equal(self.ia, A.indptr) and np.array_equal(self.ja, A.indices))
+        self.a = np.ascontiguousarray(A.data, dtype=self.dtype)
+        if not same:
+            if self.ia is not None:
+                self.release()
+            self.n = A.shape[0]
+            self.ia = A.indptr.astype(np.int32)
+            self.ja = A.indices.astype(np.int32)
+            try:
+                self.call(11)
+            except SingularSystem:
+                self.ia = self.ja = None
+                raise
+        self.call(22)
+
+    def release(self) -> None:
+        if self.ia is not None and self.a is not None:
+            try:
+                self.call(-1)
+            except SingularSystem:
+                pass
+        self.ia = self.ja = None
+        self.pt[:] = 0
+
+    @property
+    def perturbed_pivots(self) -> int:
+        return int(self.iparm[13])
+
+
+_ERRORS = {-1: "input inconsistent", -2: "not enough memory", -3: "reordering problem",
+           -4: "zero pivot, numerical factorization or iterative refinement problem",
+           -5: "unclassified (internal) error", -6: "reordering failed",
+           -7: "diagonal matrix is singular", -8: "32-bit integer overflow",
+           -9: "not enough memory for OOC", -10: "error opening OOC files",
+           -11: "read/write error with OOC files"}
+
 
 class PardisoSolver:
-    """MKL PARDISO; one handle per thread and matrix type is kept, so that the symbolic
-    analysis is reused across solves of the same model (e.g. the many solves of a fit)."""
+    """MKL PARDISO. Handles (one per thread, matrix type and precision) are kept, so the
+    symbolic analysis is reused across solves of the same model (e.g. the many solves of a
+    fit).
+
+    ``precision="single"`` (default): single-precision factor, and :meth:`solve` refines
+    its solution with the double-precision matrix to a relative residual of ``refine_tol``;
+    when the refinement stalls (perturbed pivots, a singular or badly conditioned tangent)
+    the matrix is factorised again in double precision with Bunch-Kaufman pivoting, and so
+    are the later matrices given to this instance (one instance serves one solve).
+    """
 
     name = "pardiso"
 
-    def __init__(self):
+    def __init__(self, *, precision: str = "single", refine_tol: float = 1e-11):
         import pypardiso  # noqa: F401  (fail early if missing)
 
-        self._ps = None
-        self._mtype = None
-        self._pattern = None
+        if precision not in ("single", "double"):
+            raise ValueError(f"mechanics: PARDISO precision must be 'single' or 'double', "
+                             f"got {precision!r}")
+        self.precision = precision
+        self.refine_tol = refine_tol
+        self._h = None
         self._A = None
+        self._matvec = None
+        self.fallbacks = 0  # double-precision refactorisations after a stalled refinement
+        self.refinements = 0  # refinement steps (extra triangular solves)
 
-    def _solver(self, mtype: int):
+    def _handle(self, mtype: int, precision: str) -> _Handle:
         pool = getattr(_POOL, "handles", None)
         if pool is None:
             pool = _POOL.handles = {}
-        if self._ps is None or self._mtype != mtype:
-            if mtype in pool:
-                self._ps, self._mtype = pool[mtype]["ps"], mtype
-                self._pattern = pool[mtype].get("pattern")
-                return self._ps
-            self._ps = _new_handle(mtype)
-            self._ps.set_iparm(1, 1)  # our iparms, not defaults
-            self._ps.set_iparm(2, 2)  # METIS nested dissection
-            # No iterative refinement unless pivots were perturbed (then PARDISO does two by
-            # itself); the caller checks the solve residual. Measured: solve 0.037 -> 0.021 s.
-            self._ps.set_iparm(8, 0)
-            self._ps.set_iparm(10, 8 if mtype == -2 else 13)  # pivot perturbation 1e-8/1e-13
-            self._ps.set_iparm(11, 0 if mtype == -2 else 1)  # scaling
-            self._ps.set_iparm(13, 0 if mtype == -2 else 1)  # weighted matching
-            self._ps.set_iparm(12, 0)
-            self._ps.set_iparm(21, 1)  # Bunch-Kaufman pivoting (symmetric indefinite)
-            self._ps.set_iparm(35, 0)  # 1-based indices (pypardiso adds 1)
-            self._mtype, self._pattern = mtype, None
-            pool[mtype] = {"ps": self._ps}
-        return self._ps
+        key = (mtype, precision)
+        if key not in pool:
+            pool[key] = _Handle(_mkl(), mtype, precision)
+        return pool[key]
 
     def factorize(self, U: sp.csr_matrix, *, symmetric: bool = True) -> None:
-        with _mkl_threads(self._ps or self._solver(-2 if symmetric else 11)):
-            self._factorize(U, symmetric=symmetric)
-
-    def _factorize(self, U: sp.csr_matrix, *, symmetric: bool) -> None:
+        """Factorise U: the upper triangle if ``symmetric`` else the full matrix."""
         A = U.tocsr()
-        A.sort_indices()
-        A.data = np.ascontiguousarray(A.data, dtype=np.float64)
-        ps = self._solver(-2 if symmetric else 11)
-        pattern = (A.indptr, A.indices)
-        same = (self._pattern is not None and np.array_equal(pattern[0], self._pattern[0])
-                and np.array_equal(pattern[1], self._pattern[1]))
-        b = np.zeros((A.shape[0], 1))
-        try:
-            if not same:
-                ps.set_phase(11)
-                ps._call_pardiso(A, b)
-                self._pattern = (A.indptr.copy(), A.indices.copy())
-                _POOL.handles[self._mtype]["pattern"] = self._pattern
-            ps.set_phase(22)
-            ps._call_pardiso(A, b)
-        except Exception as exc:  # PyPardisoError
-            self._pattern = None
-            _POOL.handles[self._mtype].pop("pattern", None)
-            raise SingularSystem(f"PARDISO: {exc}") from None
+        if not A.has_sorted_indices:
+            A = A.copy()
+            A.sort_indices()
         self._A = A
+        self._mtype = -2 if symmetric else 11
+        if symmetric:
+            d = A.diagonal()
+            At = A.T
+            self._matvec = lambda y: A @ y + At @ y - d * y
+        else:
+            self._matvec = A.__matmul__
+        self._factor(self.precision)
+
+    def _factor(self, precision: str) -> None:
+        h = self._handle(self._mtype, precision)
+        with _mkl_threads(h.lib):
+            h.factorize(self._A)
+        self._h = h
+
+    def precondition(self, b: np.ndarray) -> np.ndarray:
+        """One solve with the factor as it is (no refinement): a preconditioner."""
+        with _mkl_threads(self._h.lib):
+            return self._h.call(33, b).astype(np.float64)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        ps = self._ps
-        ps.set_phase(33)
-        with _mkl_threads(ps):
-            x = ps._call_pardiso(self._A, np.asfortranarray(b.reshape(-1, 1)))
-        return x.ravel()
+        """Solution of A x = b to a relative residual of about ``refine_tol``."""
+        b = np.asarray(b, dtype=np.float64).ravel()
+        x = self.precondition(b)
+        if self._h.precision == "double":
+            return x
+        nb = np.linalg.norm(b)
+        if nb == 0.0:
+            return x
+        prev = np.inf
+        for _ in range(10):
+            r = b - self._matvec(x)
+            err = np.linalg.norm(r) / nb
+            if not np.isfinite(err) or err <= self.refine_tol:
+                break
+            if err > 0.25 * prev:  # stalls: refactorise in double precision
+                self.fallbacks += 1
+                self.precision = "double"
+                self._factor("double")
+                return self.precondition(b)
+            prev = err
+            x += self.precondition(r)
+            self.refinements += 1
+        return x
 
 
 #: Threads of MKL inside PARDISO calls (thread-local, restored after each call); 0 leaves
@@ -128,8 +248,8 @@ PARDISO_THREADS = int(os.environ.get("MECHANICS_PARDISO_THREADS", "0"))
 
 
 class _mkl_threads:
-    def __init__(self, ps):
-        self.fn = getattr(ps.libmkl, "MKL_Set_Num_Threads_Local", None)
+    def __init__(self, lib):
+        self.fn = getattr(lib, "MKL_Set_Num_Threads_Local", None)
         self.prev = None
 
     def __enter__(self):
@@ -142,16 +262,37 @@ class _mkl_threads:
         return False
 
 
-def _new_handle(mtype: int):
-    """A PyPardisoSolver; the MKL library path is resolved once (pypardiso globs sys.prefix,
-    about 1 s, when it is not given)."""
+@functools.cache
+def _mkl():
+    """The MKL runtime library, found once (pypardiso globs sys.prefix, about 1 s, when
+    PYPARDISO_MKL_RT is not set)."""
     from pypardiso import PyPardisoSolver
 
     if "PYPARDISO_MKL_RT" not in os.environ and find_library("mkl_rt") is None:
-        probe = PyPardisoSolver(mtype=mtype)
-        os.environ["PYPARDISO_MKL_RT"] = probe.libmkl._name
-        return probe
-    return PyPardisoSolver(mtype=mtype)
+        lib = PyPardisoSolver(mtype=11).libmkl
+        os.environ["PYPARDISO_MKL_RT"] = lib._name
+        return lib
+    return PyPardisoSolver(mtype=11).libmkl
+
+
+def single_thread_blas(fn):
+    """Decorator: run ``fn`` with OpenBLAS (numpy's and scipy's BLAS) on one thread.
+
+    The Newton loop's BLAS calls are vector norms and dots of 10^4-10^5 entries, which
+    threading only slows down on a shared machine (threads wake up on cores that MKL or
+    other processes hold). A no-op without ``threadpoolctl``.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover
+        return fn
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(limits={"openblas": 1}):
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def make_linear_solver(name: str):
