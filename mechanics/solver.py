@@ -47,8 +47,11 @@ class SolverOptions:
     reuse_below : see ``reuse_factor``
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
-        ``stagnate_above`` (no sign of quadratic convergence); ``stagnate_after = 0`` turns the
-        check off and leaves only ``max_newton`` (linearly converging solves, e.g. friction)
+        ``stagnate_above`` and fell less than 10x over the last 3 iterations (no sign of
+        convergence; measured: friction solves leaving their first iterations' stick/slip
+        transients were cut back while falling 50x in 3 iterations); ``stagnate_after = 0``
+        turns the check off and leaves only ``max_newton`` (linearly converging solves, e.g.
+        friction)
     singular_shift : what to do when the tangent A is singular (its factorisation fails or
         its solve does not satisfy the system): solve the Newton correction with A + rho S,
         rho = min(1, relative residual), S the regularising stiffness that effects offer
@@ -484,7 +487,8 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
             return False, u, ev, f"no convergence in {opt.max_newton} iterations"
         if rf > 1e6 * max(r0, 1e-300) and it > 0:
             return False, u, ev, "residual diverged"
-        if opt.stagnate_after and it >= opt.stagnate_after and rel > opt.stagnate_above:
+        if opt.stagnate_after and it >= opt.stagnate_after and rel > opt.stagnate_above \
+                and rel > 0.1 * entry["residuals"][max(it - 3, 0)]:
             return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
         try:
             du = nw.direction(A, R, rel)
