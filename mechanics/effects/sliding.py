@@ -77,11 +77,13 @@ RULES = {
 def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
     """Magnitude of the friction force from the trial force r and the bound b (mN).
 
-    sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: a smooth minimum,
-    phi = (r - h + a sqrt(1 + sigma^2)) / 2 with h = sqrt((r - a)^2 + (sigma a)^2) and
-    a = 2 b / (1 + sqrt(1 + sigma^2)), which is 0 at r = 0, tends to b in full slip (so
-    the sliding force is Coulomb's) and to r in stick, and rounds the stick-slip corner over
-    a width ~sigma b (Newton then sees a smooth law).
+    sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: the corner is rounded by
+    a parabola between r = (1 - sigma) b and (1 + sigma) b,
+    phi = b - (r - (1 + sigma) b)^2 / (4 sigma b), continuous with its slope; below, phi = r
+    exactly (stick: a linear spring), above, phi = b exactly (Coulomb slip). Exact on both
+    branches is what makes the anchor update of :meth:`Sliding.begin_step` leave the force
+    of a converged state unchanged (a law below r everywhere relaxed every friction force
+    at every load step).
 
     Returns phi, d phi / dr, phi / r (its limit at r = 0) and d phi / db.
     """
@@ -90,19 +92,26 @@ def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
         phi = np.minimum(r, b)
         return (phi, stick.astype(float),
                 np.where(stick, 1.0, b / np.where(r > 0, r, 1.0)), (~stick).astype(float))
-    c = np.sqrt(1.0 + sigma**2)
-    scale = 2.0 / (1.0 + c)  # a = scale b: the full-slip limit a (1 + c) / 2 equals b
-    b = scale * b
-    h = np.sqrt((r - b) ** 2 + (sigma * b) ** 2)
-    hs = np.where(h > 0, h, 1.0)
-    phi = 0.5 * (r - h + b * c)
-    phi_r = np.where(h > 0, 0.5 * (1.0 - (r - b) / hs), 0.0)
-    phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), 0.5 * (1.0 + 1.0 / c))
+    hi = (1.0 + sigma) * b
+    stick = r <= (1.0 - sigma) * b
+    slip = r >= hi
+    den = np.where(b > 0, 4.0 * sigma * b, 1.0)
+    d = r - hi  # < 0 in the blend
+    phi = np.where(stick, r, np.where(slip, b, b - d * d / den))
+    phi_r = np.where(stick, 1.0, np.where(slip, 0.0, -2.0 * d / den))
+    phi_b = np.where(stick, 0.0, np.where(slip, 1.0,
+                                          1.0 + 2.0 * (1.0 + sigma) * d / den
+                                          + d * d / (den * np.where(b > 0, b, 1.0))))
     # r = b = 0 (the first iterate of a solve): no friction in the tangent, so the normal
     # pressure builds up first (measured: a stick tangent there makes supine solves stagnate)
-    phi_over_r = np.where((r > 0) | (b > 0), phi_over_r, 0.0)
-    phi_b = scale * np.where(h > 0, 0.5 * (c - (sigma**2 * b - (r - b)) / hs), 0.0)
+    phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), np.where(b > 0, 1.0, 0.0))
+    phi_r = np.where(b > 0, phi_r, 0.0)
     return phi, phi_r, phi_over_r, phi_b
+
+
+def slip_limit(b: np.ndarray, sigma: float) -> np.ndarray:
+    """(P,) trial force (mN) above which :func:`friction_law` is in full slip, (1 + sigma) b."""
+    return (1.0 + sigma) * b
 
 
 def friction_bound(fN: np.ndarray, w: np.ndarray, k: float, p_eps: float):
@@ -299,13 +308,15 @@ class Sliding(_InterfaceContact):
         s, t, _ = self._trial(X, x)
         bound = self._bound(fN, self.weights(X))[0]
         r = np.linalg.norm(t, axis=1)
-        _, _, phi_over_r, _ = friction_law(r, bound, self.values["smoothing"])
-        slip = phi_over_r < 1.0 - 1e-12
+        hi = slip_limit(bound, self.values["smoothing"])
+        slip = r > hi
         if np.any(slip):
-            # Move the anchor so that the elastic slip carries the current friction force
-            # (the rest of the slip is permanent): |s_new| = phi / eps_T w.
+            # Move the anchor of a slipping point so that its elastic slip is the full-slip
+            # limit, |t_new| = (1 + sigma) b (the rest of the slip is permanent): its force
+            # stays Coulomb's b, so the converged state stays in equilibrium.
+            keep = np.where(slip, hi / np.where(slip, r, 1.0), 1.0)
             old = self.anchor_facet.copy(), self.anchor_bary.copy()
-            self._set_anchors(x, xp - phi_over_r[:, None] * s)
+            self._set_anchors(x, xp - keep[:, None] * s)
             self.anchor_facet = np.where(slip, self.anchor_facet, old[0])
             self.anchor_bary = np.where(slip[:, None], self.anchor_bary, old[1])
         # Freeze the normal of every anchor facet at the converged configuration.

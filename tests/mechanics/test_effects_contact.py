@@ -253,3 +253,31 @@ def test_begin_step_updates_once_per_converged_state():
     np.testing.assert_array_equal(eff.multiplier, once[0])
     np.testing.assert_array_equal(eff.anchor_bary, once[1])
     np.testing.assert_array_equal(eff.anchor_facet, once[2])
+
+
+@pytest.mark.parametrize("smoothing", [0.0, 0.1, 0.3])
+def test_anchor_update_keeps_the_friction_force_of_a_converged_state(smoothing):
+    """Re-anchoring at the start of a load step moves only the slipping points' anchors and
+    leaves every contact force at x unchanged, so a converged state stays in equilibrium (a
+    law below the stick line everywhere relaxed every force at each step). Shear growing
+    along x: sticking, rounded and slipping points alike."""
+    mesh = stack(((4, 4, 1), (20.0, 20.0, 2.0), (-5.0, -5.0, 0.0)),
+                 ((4, 4, 1), (10.0, 10.0, 4.0), (0.0, 0.0, 2.0)))
+    X = mesh.nodes
+    eff = build_model(mesh, materials(1.0, 1.0), {
+        "sliding": {"friction": 0.1, "smoothing": smoothing}}).effects[0]
+    eff.begin_step(X, X.copy())
+    x = X.copy()
+    up = mesh.node_sets["upper"]
+    x[up, 2] -= 0.02 + 0.01 * X[up, 1] / 10.0  # pressure varying along y
+    x[up, 0] += 0.05 * X[up, 0]  # shear growing along x
+    _, _, stick = eff.tangential_state(X, x)
+    assert 0 < stick.sum() < len(stick)  # the premise: both states present
+    before = eff.contribute(X, x, 1.0).force
+    eff.begin_step(X, x.copy())
+    after = eff.contribute(X, x, 1.0).force
+    tol = 1e-9 * np.abs(before).max()
+    # breast side node by node; the muscle side takes the reaction at the anchor, which moves
+    # with the slip, so only its resultant is unchanged
+    np.testing.assert_allclose(after[up], before[up], atol=tol)
+    np.testing.assert_allclose(after.sum(axis=0), before.sum(axis=0), atol=tol)
