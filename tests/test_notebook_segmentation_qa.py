@@ -2,9 +2,8 @@
 
 import json
 
-import nbformat
 import pytest
-from nbclient import NotebookClient
+from nbrun import assert_stripped, execute
 
 from imaging.io import read_volume
 from imaging.qa import dice
@@ -13,23 +12,13 @@ NOTEBOOK = "notebooks/segmentation_qa.ipynb"
 
 
 def test_committed_notebook_has_no_outputs():
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    for cell in nb.cells:
-        if cell.cell_type == "code":
-            assert cell.outputs == [] and cell.execution_count is None
+    assert_stripped(NOTEBOOK)
 
 
 def test_notebook_runs_and_saves_labels(tmp_path, monkeypatch):
-    monkeypatch.setenv("BREASTMODEL_NB_OUT", str(tmp_path))
-    monkeypatch.setenv("MPLBACKEND", "module://matplotlib_inline.backend_inline")
-    nb = nbformat.read(NOTEBOOK, as_version=4)
-    NotebookClient(nb, timeout=300, kernel_name="python3",
-                   resources={"metadata": {"path": "."}}).execute()
-    text = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code"
-                     for o in c.outputs)
+    text, n_images = execute(NOTEBOOK, tmp_path, monkeypatch, timeout=300)
     assert "Dice" in text and "with seeds" not in text  # titles are in figures, not text
-    assert sum(1 for c in nb.cells if c.cell_type == "code" for o in c.outputs
-               if "image/png" in o.get("data", {})) >= 2
+    assert n_images >= 2
     saved = read_volume(tmp_path / "supine_labels.nii.gz")
     truth = read_volume(tmp_path / "phantom_truth" / "supine_labels.nii.gz")
     d = dice(saved, truth)
