@@ -493,7 +493,19 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
                 and rel > 0.1 * entry["residuals"][max(it - 3, 0)]:
             return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
         try:
-            du = nw.direction(A, R, rel)
+            A_first = None
+            if it == 0 and opt.singular_shift > 0.0 and not np.any(u[nw.free]):
+                # From rest every contact gap is zero: frictional sliding gives no tangential
+                # stiffness and a body held by friction alone has an exactly singular but
+                # consistent tangent, which some factorisations solve without complaint,
+                # adding an arbitrary rigid slide (measured: 107 mm with scipy on the
+                # two-mound model, diverged). The first correction from rest therefore always
+                # uses the effects' regularisation (what a detected singular tangent gets).
+                A_first = nw.effect_shift(A, u, 1.0)
+            du = nw.direction(A if A_first is None else A_first, R, rel,
+                              fresh=A_first is not None)
+            if A_first is not None:
+                entry["shifted"] = entry.get("shifted", 0) + 1
         except SingularSystem as exc:
             du = None
             if opt.singular_shift > 0.0:
