@@ -281,3 +281,57 @@ def test_anchor_update_keeps_the_friction_force_of_a_converged_state(smoothing):
     # with the slip, so only its resultant is unchanged
     np.testing.assert_allclose(after[up], before[up], atol=tol)
     np.testing.assert_allclose(after.sum(axis=0), before.sum(axis=0), atol=tol)
+
+
+def _mound_model(position_gravity, effects):
+    from breastmodel.phantom.mounds import mound_mesh
+
+    mesh = split_interface(mound_mesh(cells=(8, 6, 3, 2), gland=False))
+    nh = {"name": "neo_hookean", "nu": 0.49}
+    mats = {1: {**nh, "E": 1.0}, 3: {**nh, "E": 1.0}, 2: {**nh, "E": 10.0}}
+    eff = {"supports": {}, "skin": {"E": 4.0}, **effects,
+           "gravity": {"direction": position_gravity}}
+    return mesh, build_model(mesh, mats, eff)
+
+
+def test_two_mounds_tilted_slide_held_by_ligaments():
+    """The paper's model on the two-mound mesh (breast 1, muscle 10, skin 4, fascia 120 kPa,
+    friction 0.1, ligaments 100 kPa on 10 mm^2) tilted 45 deg: converges, and the breast's
+    lateral balance holds: the weight's x component equals the friction resultant plus the
+    ligaments' x pull (no support acts in x; 1e-6), with friction at Coulomb's capacity
+    k x (normal resultant) within the rounding of the corner (10 %), since 0.1 < tan 45."""
+    g = (np.sqrt(0.5), np.sqrt(0.5), 0.0)
+    mesh, model = _mound_model(g, {"fascia": {"E": 120.0}, "ligaments": {"area": 10.0},
+                                   "sliding": {"friction": 0.1}})
+    st = solve(model, options=SolverOptions(linear_solver="scipy"))
+    X, x = mesh.nodes, st.x
+    eff = {e.name: e for e in model.effects}
+    breast = np.unique(mesh.tets[mesh.region != 2])
+    W = RHO_G * np.abs(np.linalg.det(X[mesh.tets[mesh.region != 2]][:, 1:]
+                                     - X[mesh.tets[mesh.region != 2]][:, :1])).sum() / 6
+    lig = eff["ligaments"].contribute(X, x, 1.0).force[breast].sum(axis=0)
+    slide = eff["sliding"].contribute(X, x, 1.0).force[breast].sum(axis=0)
+    assert abs(lig[0] + slide[0] - W * g[0]) <= 1e-6 * W  # residual sign: resisting > 0
+    _, t, _ = eff["sliding"].tangential_state(X, x)
+    fN = -(eff["sliding"].pressure(X, x) * eff["sliding"].weights(X))  # < 0 compression
+    cap = 0.1 * np.maximum(-fN, 0).sum()
+    assert 0.9 * cap <= abs(t[:, 0].sum()) <= cap * (1 + 1e-9)
+    assert lig[0] > 0.5 * W * g[0]  # the ligaments, not friction, hold most of it
+
+
+@pytest.mark.parametrize("gy", [-1.0, 1.0])
+def test_two_mounds_prone_and_supine_slide_on_friction_alone(gy):
+    """Skin, supports and sliding with friction 0.1 on the two-mound mesh (the diagnosis's
+    sliding truth) converge prone and supine; the mesh is mirror-symmetric in x, so the
+    friction resultant in x vanishes (1e-6 of the weight) while the two breasts slide apart
+    or together."""
+    mesh, model = _mound_model((0.0, gy, 0.0), {"sliding": {"friction": 0.1}})
+    st = solve(model, options=SolverOptions(linear_solver="scipy"))
+    X = mesh.nodes
+    breast = np.unique(mesh.tets[mesh.region != 2])
+    W = RHO_G * np.abs(np.linalg.det(X[mesh.tets[mesh.region != 2]][:, 1:]
+                                     - X[mesh.tets[mesh.region != 2]][:, :1])).sum() / 6
+    slide = model.effects[-2].contribute(X, st.x, 1.0).force[breast].sum(axis=0)
+    assert abs(slide[0]) <= 1e-6 * W
+    left = breast[X[breast, 0] > 0]
+    assert np.abs(st.u[left, 0]).max() > 0.1  # mm: the interface does slide
