@@ -16,8 +16,10 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-# Local (row, col) pairs of the upper triangle of a 12 x 12 element matrix.
+# Local (row, col) pairs of the upper triangle of a 12 x 12 element matrix, and the 10 node
+# pairs a <= b of a tet.
 _IU, _JU = np.triu_indices(12)
+PAIR_A, PAIR_B = np.triu_indices(4)
 
 
 class ReducedSystem:
@@ -33,54 +35,65 @@ class ReducedSystem:
 
     def __init__(self, tets: np.ndarray, n_nodes: int, free: np.ndarray,
                  pressure_nodes: np.ndarray | None):
+        tets = np.asarray(tets, np.int64)
         M = len(tets)
         self.free = np.asarray(free, bool)
         fi = np.full(3 * n_nodes, -1, np.int64)
         fi[self.free] = np.arange(int(self.free.sum()))
         self.fi = fi
         self.n_free = int(self.free.sum())
-        dofs = (3 * tets[:, :, None] + np.arange(3)).reshape(M, 12)
-        fd = fi[dofs]  # (M, 12)
-        r, c = fd[:, _IU], fd[:, _JU]  # (M, 78)
-        keep_uu = (r >= 0) & (c >= 0)
-        lo, hi = np.minimum(r, c), np.maximum(r, c)
-        keys = [(lo[keep_uu], hi[keep_uu])]
         if pressure_nodes is not None:
             pidx = np.full(n_nodes, -1, np.int64)
             pidx[pressure_nodes] = self.n_free + np.arange(int(pressure_nodes.sum()))
             self.pidx = pidx
             self.n = self.n_free + int(pressure_nodes.sum())
-            ru = np.repeat(fd, 4, axis=1)  # (M, 48): [dof l, node a] as l*4 + a
-            cp = np.tile(pidx[tets], (1, 12))
-            keep_up = ru >= 0
-            keys.append((ru[keep_up], cp[keep_up]))
-            pp = np.arange(self.n_free, self.n)
-            keys.append((pp, pp))
-            self.keep_up = keep_up
         else:
             self.pidx = None
             self.n = self.n_free
-            self.keep_up = None
-        self.keep_uu = keep_uu
-        rows = np.concatenate([k[0] for k in keys])
-        cols = np.concatenate([k[1] for k in keys])
-        key = rows * self.n + cols
-        uniq, inv = np.unique(key, return_inverse=True)
+        n = self.n
+        # The pattern from the unique node pairs of the mesh (a few per node), not from the
+        # 126 entries of every element: 150k tets peaked at 2.0 GB in np.unique over the
+        # 19M element entries, and take 0.3 GB this way.
+        a, b = np.minimum(tets[:, PAIR_A], tets[:, PAIR_B]), np.maximum(tets[:, PAIR_A],
+                                                                       tets[:, PAIR_B])
+        pairs = np.unique(a.ravel() * n_nodes + b.ravel())
+        a, b = pairs // n_nodes, pairs % n_nodes
+        del pairs
+        k3 = np.arange(3)
+        r = fi[3 * a[:, None, None] + k3[None, :, None]]  # (U, 3, 1): dofs of a
+        c = fi[3 * b[:, None, None] + k3[None, None, :]]  # (U, 1, 3): dofs of b
+        r, c = np.broadcast_arrays(r, c)
+        ok = (r >= 0) & (c >= 0)
+        keys = [np.minimum(r, c)[ok] * n + np.maximum(r, c)[ok]]
+        if self.pidx is not None:
+            for x, y in ((a, b), (b, a)):  # displacement of x with the pressure of y
+                rr = fi[3 * x[:, None] + k3]
+                cc = np.broadcast_to(pidx[y][:, None], rr.shape)
+                ok = (rr >= 0) & (cc >= 0)
+                keys.append(rr[ok] * n + cc[ok])
+            pp = pidx[pidx >= 0]
+            keys.append(pp * n + pp)
+        uniq = np.unique(np.concatenate(keys))
+        del keys, r, c, ok
         self.nnz = len(uniq)
-        self.indices = (uniq % self.n).astype(np.int32)
-        counts = np.bincount(uniq // self.n, minlength=self.n)
+        self.indices = (uniq % n).astype(np.int32)
+        counts = np.bincount(uniq // n, minlength=n)
         self.indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
-        n_uu = int(keep_uu.sum())
-        n_up = 0 if self.keep_up is None else int(self.keep_up.sum())
-        # Full-length maps; dropped (constrained) entries go to a spare slot at index nnz.
-        map_uu = np.full(keep_uu.size, self.nnz, np.int64)
-        map_uu[keep_uu.ravel()] = inv[:n_uu]
-        self.map_uu_t = np.ascontiguousarray(map_uu.reshape(M, 78).T).ravel()
-        del map_uu
-        if self.keep_up is not None:
-            self.map_up = np.full(self.keep_up.size, self.nnz, np.int64)
-            self.map_up[self.keep_up.ravel()] = inv[n_uu:n_uu + n_up]
-        self.map_pp = inv[n_uu + n_up:]
+        fd = fi[(3 * tets[:, :, None] + k3).reshape(M, 12)]  # (M, 12)
+        # Scatter maps, one local entry at a time (bounded temporaries); constrained entries
+        # go to a spare slot at index nnz. The stiffness map is element-last (78, M), as the
+        # solid stores Kup.
+        self.map_uu_t = np.empty((78, M), np.int64)
+        for j in range(78):
+            self.map_uu_t[j] = _locate(uniq, fd[:, _IU[j]], fd[:, _JU[j]], n)
+        self.map_uu_t = self.map_uu_t.ravel()
+        if self.pidx is not None:
+            pt = pidx[tets]
+            self.map_up = np.empty((M, 48), np.int64)
+            for j in range(48):  # column l * 4 + a: displacement dof l with pressure of node a
+                self.map_up[:, j] = _locate(uniq, fd[:, j // 4], pt[:, j % 4], n)
+            self.map_up = self.map_up.ravel()
+            self.map_pp = np.searchsorted(uniq, pp * n + pp)
 
     def assemble(self, Kup: np.ndarray, dv: np.ndarray | None = None,
                  pp_diag: np.ndarray | None = None) -> sp.csr_matrix:
@@ -112,6 +125,14 @@ class ReducedSystem:
             up = r <= c
             r, c, v = r[up], c[up], v[up]
         return sp.coo_matrix((v, (r, c)), shape=(self.n, self.n)).tocsr()
+
+
+def _locate(uniq: np.ndarray, r: np.ndarray, c: np.ndarray, n: int) -> np.ndarray:
+    """Positions in the sorted keys ``uniq`` of the upper-triangle entries (r, c); nnz
+    (the spare slot) where r or c is constrained (< 0)."""
+    ok = (r >= 0) & (c >= 0)
+    key = np.minimum(r, c) * n + np.maximum(r, c)
+    return np.where(ok, np.searchsorted(uniq, np.where(ok, key, 0)), len(uniq))
 
 
 def full_from_upper(U: sp.csr_matrix) -> sp.csr_matrix:
