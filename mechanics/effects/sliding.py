@@ -31,7 +31,9 @@ Coulomb's). The exact corner (smoothing 0) makes Newton stagnate, at any load si
 is scale-free: stick/slip states cycle between iterations (measured: supine breast-like model,
 3.5k tets, no step converged even at load ~1/4000). An optional rounded bound at zero
 pressure (``pressure_smoothing``, kPa, :func:`friction_bound`) is off by default. At the next
-step a slipping point's anchor moves so that the carried force sits on the cone. The
+step a slipping point's anchor moves so that its trial force is the full-slip limit
+(1 + smoothing) b: the carried force stays Coulomb's and a converged state stays in
+equilibrium; the update happens once per converged state (cut-backs repeat it). The
 tangent is exact for the frozen anchor and n0; it is unsymmetric while slipping (the effect
 then sets ``symmetric = False``).
 State (anchors, multipliers) is reset when a step starts from x == X (a new solve).
@@ -40,9 +42,9 @@ Zero pressure: where the friction bound is zero (no compression: the first itera
 solve, whose gaps are all zero) friction adds no tangential stiffness, so the sliding modes of
 a breast held only by friction are free and the tangent is singular. :meth:`Sliding.regularization`
 offers the stick stiffness of those points; the solver adds it to the Newton matrix (never the
-residual) only when the tangent is singular, scaled by the relative residual
-(``SolverOptions.singular_shift``), so the first correction sticks while the pressure builds
-and the equilibrium is unchanged.
+residual) for the first correction from rest and whenever the tangent is singular, scaled by
+the relative residual (``SolverOptions.singular_shift``), so the first correction sticks while
+the pressure builds and the equilibrium is unchanged.
 """
 
 from __future__ import annotations
