@@ -216,26 +216,29 @@ class PardisoSolver:
             return self._h.call(33, b).astype(np.float64)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solution of A x = b to a relative residual of about ``refine_tol``."""
+        """Solution of A x = b, refined in double precision to a relative residual of
+        ``refine_tol`` where the factor allows (a double-precision factor usually needs no
+        step)."""
         b = np.asarray(b, dtype=np.float64).ravel()
         x = self.precondition(b)
         self.last_refinements = 0
-        if self._h.precision == "double":
-            return x
         nb = np.linalg.norm(b)
         if nb == 0.0:
             return x
         prev = np.inf
-        for _ in range(10):
+        for _ in range(12):
             r = b - self._matvec(x)
             err = np.linalg.norm(r) / nb
             if not np.isfinite(err) or err <= self.refine_tol:
                 break
-            if err > 0.25 * prev:  # stalls: refactorise in double precision
+            if err > 0.25 * prev:  # stalls
+                if self._h.precision == "double":
+                    break
                 self.fallbacks += 1
                 self.precision = "double"
                 self._factor("double")
-                return self.precondition(b)
+                x, prev = self.precondition(b), np.inf
+                continue
             prev = err
             x += self.precondition(r)
             self.refinements += 1
