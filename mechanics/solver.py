@@ -47,7 +47,8 @@ class SolverOptions:
     reuse_below : see ``reuse_factor``
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
-        ``stagnate_above`` and fell less than 10x over the last 3 iterations (no sign of
+        ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
+        and fell less than 10x over the last 3 iterations (no sign of
         convergence; measured: friction solves leaving their first iterations' stick/slip
         transients were cut back while falling 50x in 3 iterations); ``stagnate_after = 0``
         turns the check off and leaves only ``max_newton`` (linearly converging solves, e.g.
@@ -489,8 +490,13 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
             return False, u, ev, f"no convergence in {opt.max_newton} iterations"
         if rf > 1e6 * max(r0, 1e-300) and it > 0:
             return False, u, ev, "residual diverged"
-        if opt.stagnate_after and it >= opt.stagnate_after and rel > opt.stagnate_above \
-                and rel > 0.1 * entry["residuals"][max(it - 3, 0)]:
+        res = entry["residuals"]
+        if opt.stagnate_after and it >= opt.stagnate_after \
+                and rel > 0.1 * res[max(it - 3, 0)] \
+                and (rel > opt.stagnate_above
+                     or min(res[it - 4:]) > 0.5 * min(res[:max(it - 4, 1)])):
+            # also below stagnate_above when the best residual has not halved in the last
+            # 5 iterations (friction states cycling: 20k-tet prone ran 20 iterations at 1e-4)
             return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
         try:
             A_first = None
