@@ -14,7 +14,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 __all__ = ["Candidate", "add_to_config", "candidate_by_name", "enumerate_candidates"]
@@ -183,7 +183,8 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
             pname = next(iter(probe), main.name)
             path = f"effects.{name}.{pname}"
             free = {path: _bounds(strength[pname])}
-            start = {path: float(probe.get(pname, strength[pname].default))}
+            v = float(probe.get(pname, strength[pname].default))
+            start = {path: v if v > 0 else strength[pname].upper / 100}  # log-scale re-fit
         out.append(Candidate(name, "effect", cls.doc or name, {name: probe}, free,
                              (0.0, 2.0) if free else (1.0, 1.0), start=start))
     # Options of effects the model already uses: a membrane's strain stiffening, missing
@@ -227,7 +228,11 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
                 skipped.append({"name": f"parameter:{path}", "reason": "covered by E"
                                 if p.name == "area" else "scored through its E parameters"})
             else:
-                out.append(_parameter(path, table.get(p.name, p.default), _bounds(p), p))
+                cand = _parameter(path, table.get(p.name, p.default), _bounds(p), p)
+                if float(table.get(p.name, p.default)) <= 0:  # switched off (e.g. friction 0)
+                    cand = replace(cand, effects={key: {**table, p.name: cand.start[path]}},
+                                   amplitude=(0.0, 1.0))
+                out.append(cand)
     for region, mat in model["materials"].items():
         cls = MATERIALS.get(mat.get("name"))
         for p in getattr(cls, "params", ()):
@@ -245,9 +250,14 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
 
 
 def _parameter(path: str, value: float, bounds: tuple[float, float], p) -> Candidate:
+    """A parameter held fixed, re-fitted in log scale: a value of 0 (e.g. no friction) is
+    probed from the parameter's default, and a lower bound of 0 becomes 1/1000 of the start."""
+    start = float(value) if value > 0 else float(p.default if p.default > 0 else p.upper / 100)
+    lo, hi = bounds
+    lo = lo if lo > 0 else min(start, hi) * 1e-3
     return Candidate(f"parameter:{path}", "parameter",
                      f"{p.doc or p.name} ({p.unit}), held at {value:g}", {},
-                     {path: bounds}, (0.0, 0.0), start={path: float(value)})
+                     {path: (lo, hi)}, (0.0, 0.0), start={path: start})
 
 
 def candidate_by_name(model: Mapping[str, Any], name: str, **mesh_info) -> Candidate:

@@ -104,7 +104,8 @@ def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
                      *[r["predicted"][p]["rms_mm"] for p in pos], est, ev, vtxt])
     parts.append(_table(["#", "candidate", "kind", "explains more than noise", "explained",
                          "predicted RMS", *[f"RMS {p}" for p in pos], "estimate",
-                         "evidence (region RMS before->after)", "checked MHD (mm)"], rows))
+                         "evidence (region RMS before->after)",
+                         "MHD after a real re-fit with it (mm)"], rows))
     if miss["failed"]:
         parts += ["<h3>Candidates whose evaluation failed</h3>",
                   _table(["candidate", "error"], [[f["name"], f["error"]]

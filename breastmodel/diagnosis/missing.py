@@ -14,8 +14,8 @@ J_c the derivatives with respect to the candidate's own parameters at the probe.
 linear least-squares solve gives the residual the model would have after adding the
 candidate and re-fitting everything, so candidates are compared at their best, and never
 credited for what re-fitting the existing parameters alone achieves (the baseline is the same
-solve without the candidate). The top candidates are then checked by a real (nonlinear)
-evaluation at the estimated parameters.
+solve without the candidate). The best candidate is then checked by a real (nonlinear)
+least-squares re-fit with it switched on, started from the linear estimate.
 
 The rim of the skin (nodes within ``rim_mm`` of its open edge, where the mesh ends at the
 field-of-view cut) is left out of the residual: there the model's truncation boundary
@@ -128,7 +128,8 @@ def _fit_bounds(cfg: Mapping[str, Any], path: str) -> tuple[float, float]:
 def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int = 0,
                     scheduler: str | None = None, verify_top: int = 1,
                     candidates: Sequence[Candidate] | None = None,
-                    rim_mm: float = RIM_MM, progress: bool = True) -> dict:
+                    rim_mm: float = RIM_MM, verify_budget: int = 12,
+                    progress: bool = True) -> dict:
     """Score every candidate missing effect of a finished run.
 
     Parameters
@@ -138,7 +139,8 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         a rerun reuses them
     n_workers, scheduler : the dask cluster (see :func:`breastmodel.sweep.run_sweep`; the
         default 0 evaluates in this process)
-    verify_top : how many of the best significant candidates get a nonlinear check
+    verify_top : how many of the best significant candidates get a nonlinear check: a
+        least-squares re-fit with the candidate on (at most ``verify_budget`` evaluations)
     candidates : override the enumeration (tests, or a user's own list)
     rim_mm : skin nodes closer than this to the skin's open edge (the field-of-view cut) are
         left out of the residual, mm (0 keeps every node)
@@ -304,7 +306,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                 break
             cols.append((rf - rc) / steps[f"cand|{c.name}|{f}"])
             v0 = float(c.start[f])
-            lo.append(math.log(flo / v0))
+            lo.append(math.log(max(flo, 1e-3 * v0) / v0))
             hi.append(math.log(fhi / v0))
             labels.append(f)
         if not ok:
@@ -335,27 +337,12 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         })
     ranking.sort(key=lambda r: r["predicted_rms_mm"])
 
-    # ---- nonlinear check of the best significant candidates
+    # ---- nonlinear check of the best significant candidates: a short least-squares re-fit
+    # (candidate on, its parameters and the fitted ones free) from the linear estimate
     by_name = {c.name: c for c in candidates}
-    todo = [r for r in ranking if r["significant"]][:max(int(verify_top), 0)]
-    if todo:
-        vpoints, vvariants = [], {}
-        for r in todo:
-            c = by_name[r["name"]]
-            m = set_params(c.apply(model), {**c.start, **r["estimate"]})
-            vvariants[f"verify|{c.name}"] = m
-            vpoints.append({"variant": f"verify|{c.name}", "model": _model_hash(m)})
-        fn = functools.partial(_variant_point, variants=vvariants,
-                               problem_dir=str(run.problem_dir), settings=settings)
-        for r, rec in zip(todo, run_sweep(fn, vpoints, work_dir, scheduler=scheduler,
-                                          n_workers=n_workers, progress=progress)):
-            if rec["status"] == "ok":
-                rv = np.concatenate([np.asarray(rec["result"]["residual"][p])[keep]
-                                     for p in obj_pos])
-                r["verified"] = {"rms_mm": rms(rv), "mhd_mm": rec["result"]["mhd_mm"],
-                                 "per_position": per_position(rv)}
-            else:
-                r["verified"] = {"error": rec["error"]}
+    for r in [r for r in ranking if r["significant"]][:max(int(verify_top), 0)]:
+        r["verified"] = _verify(by_name[r["name"]], r["estimate"], run, cfg, model, fitted,
+                                obj_pos, positions, work_dir, verify_budget, progress)
 
     base_mhd = res["base"]["result"]["mhd_mm"]
     sig = [r for r in ranking if r["significant"]]
@@ -381,8 +368,46 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         "fitted_parameters": fitted,
         "rim_mm": float(rim_mm), "n_skin_nodes": int(len(keep)), "n_scored_nodes": n_skin,
         "ranking": ranking, "skipped": skipped, "failed": failed,
-        "n_evaluations": len(points) + len(todo), "verdict": verdict,
+        "n_evaluations": len(points) + sum(r.get("verified", {}).get("evaluations", 0)
+                                           for r in ranking), "verdict": verdict,
     }
+
+
+def _verify(c: Candidate, estimate: Mapping[str, float], run, cfg, model, fitted, obj_pos,
+            positions, work_dir: Path, budget: int, progress: bool) -> dict:
+    """Switch ``c`` on and re-fit its parameters and the (not inert) fitted ones by least
+    squares on the scored positions, from the linear estimate. Returns the best
+    evaluation's MHD per position and parameters, or the error."""
+    from breastmodel.pipeline.config import set_params
+    from breastmodel.pipeline.fit import least_squares
+
+    params = {q: dict(zip(("min", "max"), _fit_bounds(cfg, q))) for q in fitted
+              if not set(q.split("|")) & set(c.replaces)}
+    params.update({f: {"min": lo, "max": hi} for f, (lo, hi) in c.free.items()})
+    start = {**c.start, **estimate}
+    x0 = {p: min(max(float(start[p]), spec["min"]), spec["max"]) for p, spec in params.items()
+          if p in start}
+    settings = {"model": set_params(c.apply(model), start), "solver": cfg["solver"],
+                "stress_free": cfg["stress_free"], "calibrate": list(obj_pos),
+                "evaluate": [p for p in positions if p not in obj_pos]}
+    folder = work_dir / f"verify-{c.name.replace(':', '_')}-{_model_hash(settings)}"
+    try:
+        if not params:  # nothing to re-fit: one evaluation
+            from breastmodel.pipeline.problem import evaluate_params
+
+            rec = evaluate_params({}, run.problem_dir, settings)
+            if rec["error"]:
+                return {"error": rec["error"]}
+            return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"],
+                    "params": {}, "evaluations": 1}
+        res = least_squares(run.problem_dir, settings, params, budget=budget,
+                            work_dir=folder, progress=progress,
+                            x0=x0 if len(x0) == len(params) else None)
+    except RuntimeError as exc:  # every evaluation failed
+        return {"error": str(exc)}
+    best = res["best"]
+    return {"mhd_mm": best["mhd_mm"], "objective_mm": best["objective"],
+            "params": best["params"], "evaluations": res["n_simulations"]}
 
 
 def _away_from_rim(mesh, nodes: np.ndarray, X: np.ndarray, rim_mm: float) -> np.ndarray:
