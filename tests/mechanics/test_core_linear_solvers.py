@@ -42,8 +42,8 @@ def test_schur_complement_of_the_saddle_point_is_the_condensed_tangent():
 
 
 def test_pardiso_single_precision_is_refined_to_double_accuracy():
-    """The single-precision factor alone leaves a relative residual far above 1e-11;
-    refinement in double brings it below 1e-11, and the solution matches SuperLU."""
+    """The single-precision factor alone leaves a relative residual far above 1e-9;
+    refinement in double brings it below 1e-13, and the solution matches SuperLU (1e-11)."""
     pytest.importorskip("pypardiso")
     U, *_ = _saddle()
     A = full_from_upper(U)
@@ -55,22 +55,23 @@ def test_pardiso_single_precision_is_refined_to_double_accuracy():
     res0 = np.linalg.norm(A @ x0 - b) / np.linalg.norm(b)
     res = np.linalg.norm(A @ x - b) / np.linalg.norm(b)
     assert res0 > 1e-9  # a single-precision solve
-    assert res <= 1e-11 and lin.last_refinements >= 1 and lin.fallbacks == 0
+    assert res <= 1e-13 and lin.last_refinements >= 1 and lin.fallbacks == 0
     ref = ScipySolver()
     ref.factorize(U, symmetric=True)
     xr = ref.solve(b)
-    assert np.abs(x - xr).max() <= 1e-9 * np.abs(xr).max()
+    assert np.abs(x - xr).max() <= 1e-11 * np.abs(xr).max()
 
 
 def test_pardiso_falls_back_to_double_precision_when_refinement_stalls():
-    """A dense symmetric indefinite matrix with a condition number of 1e7, beyond what a
-    single-precision factor resolves (eps 6e-8): the solver refactorises in double precision
-    and returns a backward-stable solution (normwise backward error 1e-14)."""
+    """A dense symmetric indefinite matrix with a condition number of 3e8, beyond what a
+    single-precision factor resolves (eps 6e-8; 1e7 still refines, slowly): the solver
+    refactorises in double precision and returns a backward-stable solution (normwise
+    backward error 1e-14; measured 3e-17)."""
     pytest.importorskip("pypardiso")
     rng = np.random.default_rng(2)
     n = 60
     Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
-    d = np.logspace(-7, 0, n) * np.where(np.arange(n) % 2, 1.0, -1.0)
+    d = np.logspace(-8.5, 0, n) * np.where(np.arange(n) % 2, 1.0, -1.0)
     A = (Q * d) @ Q.T
     A = 0.5 * (A + A.T)
     U = sp.triu(sp.csr_matrix(A), format="csr")
