@@ -176,9 +176,9 @@ def test_a_control_without_hidden_effect_reports_noise(tmp_path):
 # ---------------------------------------------------------------- more hidden effects (slow)
 
 #: name -> (hidden effect tables, mound_problem options); truth parameters inside the
-#: candidates' bounds, so that the refit can reach them.
+#: candidates' bounds, so that the refit can reach them. (The inframammary cables barely
+#: stretch while the breast is bonded to the muscle: their test uses the sliding model below.)
 HIDDEN = {
-    "ligaments:inframammary": ({"ligaments": {"groups": ["inframammary"], "E": 800.0}}, {}),
     "ligaments:medial": ({"ligaments": {"groups": ["medial"], "E": 800.0}}, {}),
     "ligaments:lateral": ({"ligaments": {"groups": ["lateral"], "E": 800.0}}, {}),
     "regions:asymmetry": ({"regions": {"E_left": 0.6, "E_right": 1.5, "gland": False}}, {}),
