@@ -176,8 +176,9 @@ def test_a_control_without_hidden_effect_reports_noise(tmp_path):
 # ---------------------------------------------------------------- more hidden effects (slow)
 
 #: name -> (hidden effect tables, mound_problem options); truth parameters inside the
-#: candidates' bounds, so that the refit can reach them. (The inframammary cables barely
-#: stretch while the breast is bonded to the muscle: their test uses the sliding model below.)
+#: candidates' bounds, so that the refit can reach them. (The inframammary cables and the
+#: fascia barely stretch while the breast is bonded to the muscle: their tests use the sliding
+#: model below.)
 HIDDEN = {
     "ligaments:medial": ({"ligaments": {"groups": ["medial"], "E": 800.0}}, {}),
     "ligaments:lateral": ({"ligaments": {"groups": ["lateral"], "E": 800.0}}, {}),
@@ -185,7 +186,6 @@ HIDDEN = {
     "regions:gland": ({"regions": {"E_left": 1.0, "E_right": 1.0, "E_gland": 5.0,
                                    "gland": True}}, {"gland": True}),
     "strain_stiffening": ({"strain_stiffening": {"Jm": 0.1}}, {}),
-    "fascia": ({"fascia": {"E": 250.0}}, {}),
 }
 
 
