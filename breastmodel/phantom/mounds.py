@@ -10,7 +10,6 @@ that :func:`breastmodel.pipeline.run.run_problem`, ``breastmodel diagnose`` and
 
 from __future__ import annotations
 
-import json
 import math
 import shutil
 from collections.abc import Mapping
@@ -21,7 +20,7 @@ import numpy as np
 
 from mechanics.mesh import KUHN, REGIONS, Mesh, orient_tets
 
-__all__ = ["GRAVITY", "boundary_faces", "mound_mesh", "mound_problem", "truth_of"]
+__all__ = ["GRAVITY", "boundary_faces", "mound_mesh", "mound_problem"]
 
 #: Unit gravity per position (LPS): prone pulls anteriorly (-y), supine posteriorly, the
 #: tilted position 45 deg towards the patient's left.
@@ -165,6 +164,7 @@ def mound_problem(folder: str | Path, truth_model: Mapping[str, Any], *,
     from breastmodel.config import write_json
     from breastmodel.pipeline.config import resolve_config
     from breastmodel.pipeline.problem import (
+        forget_problem,
         load_problem,
         predict_position,
         skin_nodes,
@@ -204,9 +204,7 @@ def mound_problem(folder: str | Path, truth_model: Mapping[str, Any], *,
         np.savez(folder / f"{pos}_skin.npz", vertices=v, triangles=tri)
     write_json(folder / "truth.json", {"model": cfg["model"], "stress_free": stress_free,
                                        "noise_mm": noise_mm, "seed": seed})
-    from breastmodel.pipeline.problem import _PROBLEMS
-
-    _PROBLEMS.pop(str(folder.resolve()), None)  # the skins changed on disk
+    forget_problem(folder)  # the skins changed on disk
     return folder
 
 
@@ -217,7 +215,3 @@ def _vertex_normals(v: np.ndarray, tri: np.ndarray) -> np.ndarray:
         np.add.at(out, tri[:, k], n)
     return out / np.maximum(np.linalg.norm(out, axis=1, keepdims=True), 1e-300)
 
-
-def truth_of(folder: str | Path) -> dict:
-    """The truth record of a :func:`mound_problem` folder."""
-    return json.loads((Path(folder) / "truth.json").read_text())

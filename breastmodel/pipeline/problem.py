@@ -26,8 +26,8 @@ from breastmodel.pipeline.config import materials_by_code, set_params
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = [
-    "Problem", "evaluate_params", "landmark_barycentric", "load_problem", "mesh_of", "model_mesh",
-    "position_model", "skin_nodes",
+    "Problem", "evaluate_params", "forget_problem", "landmark_barycentric", "load_problem",
+    "mesh_of", "model_mesh", "position_model", "skin_nodes",
     "predict_position", "score_position", "skin_node_regions", "solver_options",
     "stress_free_geometry",
 ]
@@ -113,6 +113,11 @@ def load_problem(folder: str | Path) -> Problem:
         _PROBLEMS[key] = Problem(Mesh.load_npz(folder / "mesh.npz"), gravity, skins, landmarks,
                                  meta["reference"])
     return _PROBLEMS[key]
+
+
+def forget_problem(folder: str | Path) -> None:
+    """Drop a problem folder from this process's memo (after its files were rewritten)."""
+    _PROBLEMS.pop(str(Path(folder).resolve()), None)
 
 
 def solver_options(solver: Mapping[str, Any]):
