@@ -10,6 +10,21 @@ incompressibility (lambda_3^2 = 1 / det C), the first invariant is I1 = tr C + 1
 per unit reference volume (kPa), mu = E / (2 (1 + nu)) with the project's nu = 0.49.
 The energy of a triangle is H A0 W (A0 reference area, mm^2), so forces are mN.
 
+Wrinkling (option ``wrinkling="tension_field"``, the default): a membrane has no bending
+stiffness, so it cannot carry compression; under it, it wrinkles. Tension-field theory
+replaces W by its relaxed energy (Pipkin 1986, IMA J Appl Math 36:85; Steigmann 1990,
+Proc R Soc A 429:141). With c1 >= c2 the eigenvalues of C, the minor principal stress is
+compressive when c2 < c1^(-1/2) (narrower than the natural width in uniaxial tension):
+
+    taut      c2 c1^(1/2) >= 1:        I1 = c1 + c2 + 1 / (c1 c2)
+    wrinkled  c1 > 1 > c2 c1^(1/2):    I1 = c1 + 2 c1^(-1/2)  (uniaxial tension along n1)
+    slack     c1 <= 1, c2 < 1:         I1 = 3                 (no stress)
+
+The relaxed energy is C1 across the three states. Without it (``wrinkling="none"``) a
+compressed membrane has a negative geometric stiffness and the solid under it buckles: the
+soft-breast prone points of the paper's search box failed that way. Taut triangles are
+unchanged, so inflation and every tensile state agree with the plain law.
+
 This module holds the kernel and the shared base class; ``skin`` and ``fascia`` register it
 on their face sets.
 """
@@ -23,6 +38,8 @@ from mechanics.effects.base import Contribution, Effect, Param
 #: Poisson ratio used to turn E into the shear modulus, as in the paper's bulk law.
 NU_MEMBRANE = 0.49
 LAWS = ("neo_hookean", "gent")
+WRINKLING = ("tension_field", "none")
+TAUT_MARGIN = 1e-10
 
 
 def reference_triangles(X: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -65,9 +82,55 @@ def _law_derivatives(I1: np.ndarray, mu: float, law: str, Jm: float):
     return -0.5 * mu * Jm * np.log(s), 0.5 * mu / s, 0.5 * mu / (Jm * s * s)
 
 
+def _sym_outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(T, 2, 2) symmetric part of a b^T for (T, 2) vectors."""
+    ab = a[:, :, None] * b[:, None, :]
+    return 0.5 * (ab + ab.transpose(0, 2, 1))
+
+
+def _relax(C: np.ndarray, c: np.ndarray, I1: np.ndarray, dI: np.ndarray, d2I: np.ndarray):
+    """Replace I1 and its C-derivatives by the tension-field values where the membrane is
+    wrinkled or slack (see the module docstring); taut triangles are returned unchanged."""
+    tr = C[:, 0, 0] + C[:, 1, 1]
+    disc = np.sqrt(np.maximum(0.25 * (C[:, 0, 0] - C[:, 1, 1]) ** 2 + C[:, 0, 1] ** 2, 0.0))
+    c1, c2 = 0.5 * tr + disc, 0.5 * tr - disc
+    # Taut first, with a round-off margin: the stress-free state (c1 = c2 = 1) keeps the
+    # plain law's stiffness (a compressive stress of 1e-10 mu there is immaterial).
+    taut = c2 * np.sqrt(np.maximum(c1, 1.0)) >= 1.0 - TAUT_MARGIN
+    slack = ~taut & (c1 <= 1.0)
+    wrinkled = ~taut & ~slack  # also collapsed triangles (c <= 0)
+    if not np.any(slack | wrinkled):
+        return I1, dI, d2I
+    I1, dI, d2I = I1.copy(), dI.copy(), d2I.copy()
+    I1[slack], dI[slack], d2I[slack] = 3.0, 0.0, 0.0
+    w = np.flatnonzero(wrinkled)
+    if len(w):
+        Cw, a1, a2 = C[w], c1[w], c2[w]
+        # eigenvector n1 of c1: (C01, c1 - C00) or (c1 - C11, C01), the better conditioned
+        v1 = np.stack([Cw[:, 0, 1], a1 - Cw[:, 0, 0]], axis=1)
+        v2 = np.stack([a1 - Cw[:, 1, 1], Cw[:, 0, 1]], axis=1)
+        n1 = np.where((np.einsum("ti,ti->t", v1, v1) >= np.einsum("ti,ti->t", v2, v2))[:, None],
+                      v1, v2)
+        norm = np.linalg.norm(n1, axis=1)
+        n1 = np.where(norm[:, None] > 0.0, n1 / np.where(norm > 0, norm, 1.0)[:, None],
+                      np.array([1.0, 0.0]))  # C isotropic: any direction
+        n2 = np.stack([-n1[:, 1], n1[:, 0]], axis=1)
+        N11, M12 = _sym_outer(n1, n1), _sym_outer(n1, n2)
+        g = 1.0 - a1**-1.5  # dI1/dc1 of the uniaxial invariant c1 + 2 c1^(-1/2)
+        I1[w] = a1 + 2.0 / np.sqrt(a1)
+        dI[w] = g[:, None, None] * N11
+        # d2c1/dC2 = 2 M12 x M12 / (c1 - c2) (first-order eigenvalue perturbation)
+        d2I[w] = (1.5 * a1**-2.5)[:, None, None, None, None] * np.einsum("tAB,tCD->tABCD",
+                                                                           N11, N11) \
+            + (2.0 * g / (a1 - a2))[:, None, None, None, None] * np.einsum("tAB,tCD->tABCD",
+                                                                            M12, M12)
+    return I1, dI, d2I
+
+
 def membrane_energy_terms(x: np.ndarray, tri: np.ndarray, G: np.ndarray, A0: np.ndarray,
                           H: float | np.ndarray, E: float, *, law: str = "neo_hookean",
-                          Jm: float = np.inf, tangent: bool = True):
+                          Jm: float = np.inf, wrinkling: str = "tension_field",
+                          tangent: bool = True):
     """Energy, nodal forces and element stiffness of membrane triangles.
 
     Parameters
@@ -77,6 +140,7 @@ def membrane_energy_terms(x: np.ndarray, tri: np.ndarray, G: np.ndarray, A0: np.
     H : thickness, mm (scalar or (T,))
     E : Young's modulus, kPa
     law : "neo_hookean" or "gent" (with ``Jm`` = limit of I1 - 3)
+    wrinkling : "tension_field" (relaxed energy: no compressive stress) or "none"
 
     Returns
     -------
@@ -89,24 +153,29 @@ def membrane_energy_terms(x: np.ndarray, tri: np.ndarray, G: np.ndarray, A0: np.
     F = np.einsum("tai,taA->tiA", x[tri], G)  # (T, 3, 2)
     C = np.einsum("tiA,tiB->tAB", F, F)
     c = C[:, 0, 0] * C[:, 1, 1] - C[:, 0, 1] * C[:, 1, 0]
-    if np.any(c <= 0.0):
+    relax = wrinkling == "tension_field"
+    if np.any(c <= 0.0) and not relax:
         c = np.where(c > 0.0, c, np.nan)  # collapsed triangle: undefined, solver cuts back
-    Ci = np.empty_like(C)
-    Ci[:, 0, 0], Ci[:, 1, 1] = C[:, 1, 1] / c, C[:, 0, 0] / c
-    Ci[:, 0, 1] = Ci[:, 1, 0] = -C[:, 0, 1] / c
-    I1 = C[:, 0, 0] + C[:, 1, 1] + 1.0 / c
+    with np.errstate(divide="ignore", invalid="ignore"):  # c <= 0 only where relaxed away
+        Ci = np.empty_like(C)
+        Ci[:, 0, 0], Ci[:, 1, 1] = C[:, 1, 1] / c, C[:, 0, 0] / c
+        Ci[:, 0, 1] = Ci[:, 1, 0] = -C[:, 0, 1] / c
+        I1 = C[:, 0, 0] + C[:, 1, 1] + 1.0 / c
+        eye = np.eye(2)
+        dI = eye[None] - Ci / c[:, None, None]  # dI1/dC (symmetric)
+        # d2I1/dC dC, minor and major symmetric
+        d2I = (0.5 * (np.einsum("tAC,tBD->tABCD", Ci, Ci)
+                      + np.einsum("tAD,tBC->tABCD", Ci, Ci))
+               + np.einsum("tAB,tCD->tABCD", Ci, Ci)) / c[:, None, None, None, None]
+    if relax:
+        I1, dI, d2I = _relax(C, c, I1, dI, d2I)
     W, d1, d2 = _law_derivatives(I1, mu, law, Jm)
     vol = np.broadcast_to(np.asarray(H, float), A0.shape) * A0  # mm^3
-    eye = np.eye(2)
-    dI = eye[None] - Ci / c[:, None, None]  # dI1/dC (symmetric)
     S = d1[:, None, None] * dI  # dW/dC
     # dE/dx_a = 2 V F S G_a
     fe = 2.0 * vol[:, None, None] * (G @ S @ F.transpose(0, 2, 1))
     if not tangent:
         return vol * W, fe, None
-    # d2I1/dC dC, minor and major symmetric
-    d2I = (0.5 * (np.einsum("tAC,tBD->tABCD", Ci, Ci) + np.einsum("tAD,tBC->tABCD", Ci, Ci))
-           + np.einsum("tAB,tCD->tABCD", Ci, Ci)) / c[:, None, None, None, None]
     K4 = (d1[:, None, None, None, None] * d2I
           + d2[:, None, None, None, None] * np.einsum("tAB,tCD->tABCD", dI, dI))
     # geometric: 2 V (G_a S G_b) delta_ij; material: 4 V K_ABCD G_aA F_iB G_bC F_jD
@@ -137,7 +206,8 @@ class MembraneEffect(Effect):
     """Base of the membrane effects: a face set, a thickness, a modulus and a law.
 
     Subclasses set ``name``, ``face_set``, ``params`` (``E`` kPa, ``thickness`` mm, ``Jm``).
-    Option ``law``: "neo_hookean" (default) or "gent".
+    Options ``law``: "neo_hookean" (default) or "gent"; ``wrinkling``: "tension_field"
+    (default: no compressive stress) or "none".
     """
 
     face_set: str = ""
@@ -148,6 +218,10 @@ class MembraneEffect(Effect):
         self.law = str(opts.pop("law", "neo_hookean"))
         if self.law not in LAWS:
             raise ValueError(f"effect {self.name!r}: law must be one of {LAWS}, got {self.law!r}")
+        self.wrinkling = str(opts.pop("wrinkling", "tension_field"))
+        if self.wrinkling not in WRINKLING:
+            raise ValueError(f"effect {self.name!r}: wrinkling must be one of {WRINKLING}, "
+                             f"got {self.wrinkling!r}")
         if opts:
             raise ValueError(f"effect {self.name!r}: unknown option(s) {sorted(opts)}")
         self.tri = np.asarray(mesh.face_sets[self.face_set], np.int64)
@@ -163,13 +237,14 @@ class MembraneEffect(Effect):
         G, A0 = self._reference(X)
         W, _, _ = membrane_energy_terms(x, self.tri, G, A0, self.values["thickness"],
                                         self.values["E"], law=self.law, Jm=self.values["Jm"],
-                                        tangent=False)
+                                        wrinkling=self.wrinkling, tangent=False)
         return float(W.sum())
 
     def contribute(self, X, x, load):
         G, A0 = self._reference(X)
         _, fe, Ke = membrane_energy_terms(x, self.tri, G, A0, self.values["thickness"],
-                                          self.values["E"], law=self.law, Jm=self.values["Jm"])
+                                          self.values["E"], law=self.law, Jm=self.values["Jm"],
+                                          wrinkling=self.wrinkling)
         return scatter(len(x), self.tri, fe, Ke)
 
 

@@ -204,3 +204,29 @@ def test_split_interface_duplicates_breast_side(mesh):
     assert np.all(np.isin(s.node_sets["fixed"], muscle_nodes))
     np.testing.assert_allclose(s.signed_volumes(), mesh.signed_volumes())
     assert "interface_muscle" not in mesh.face_sets  # input untouched
+
+
+@pytest.mark.parametrize("width", [0.5, 0.9])
+def test_wrinkled_membrane_carries_uniaxial_tension_only(width):
+    """A membrane stretched by lam along x and narrowed below its natural width lam^-1/2
+    wrinkles: its stress is the uniaxial nominal stress mu (lam - lam^-2) along x, nothing
+    across; squeezed in both directions it is slack. Without the relaxation (wrinkling
+    "none") the narrowed membrane carries a compressive transverse stress."""
+    from mechanics.effects.membrane import membrane_energy_terms, reference_triangles
+
+    X = np.array([[0.0, 0.0, 0.0], [4.0, 0.0, 0.0], [1.0, 3.0, 0.0]])
+    tri = np.array([[0, 1, 2]])
+    G, A0 = reference_triangles(X, tri)
+    E, H, lam = 4.0, 2.0, 1.3
+    mu = E / (2 * (1 + NU_MEMBRANE))
+    x = X * np.array([lam, width * lam**-0.5, 1.0])
+    W, fe, _ = membrane_energy_terms(x, tri, G, A0, H, E)
+    V = H * A0[0]
+    P = np.zeros((3, 2))
+    P[0, 0] = mu * (lam - lam**-2)  # uniaxial nominal stress, kPa
+    assert np.allclose(fe[0], V * G[0] @ P.T, rtol=1e-12, atol=1e-12 * abs(fe).max())
+    assert W[0] == pytest.approx(V * mu / 2 * (lam**2 + 2 / lam - 3), rel=1e-12)
+    _, fe_plain, _ = membrane_energy_terms(x, tri, G, A0, H, E, wrinkling="none")
+    assert np.abs(fe_plain[0][:, 1]).max() > 0.1 * np.abs(fe[0][:, 0]).max()
+    Ws, fs, Ks = membrane_energy_terms(X * np.array([0.95, width, 1.0]), tri, G, A0, H, E)
+    assert Ws[0] == 0.0 and not fs.any() and not Ks.any()

@@ -222,3 +222,61 @@ def test_sliding_refuses_conforming_mesh(mesh):
                              "interface_muscle": mesh.face_sets["interface"]})
     with pytest.raises(ValueError, match="split the interface"):
         EFFECTS["sliding"](shared)
+
+
+def _triangle_states(seed=3):
+    """Separate triangles, each under a homogeneous stretch chosen to be taut, wrinkled
+    (width below the natural width lam^-1/2) or slack, with a random rotation and shear."""
+    from mechanics.effects.membrane import reference_triangles
+
+    rng = np.random.default_rng(seed)
+    stretches = [(1.3, 1.1), (1.2, 1.0), (1.4, 0.6), (1.1, 0.5), (1.25, 0.2), (0.9, 0.8),
+                 (0.95, 0.3)]
+    X, x, tri = [], [], []
+    for k, (l1, l2) in enumerate(stretches):
+        ref = np.array([[0.0, 0.0, 0.0], [3.0, 0.5, 0.0], [0.7, 2.5, 0.0]]) + 5.0 * k
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        A = np.diag([l1, l2, 1.0]) @ np.array([[1.0, 0.2, 0.0], [0.0, 1.0, 0.0], [0, 0, 1]])
+        X.append(ref)
+        x.append((ref - ref[0]) @ (Q @ A).T + ref[0] + 1.0)
+        tri.append(np.arange(3) + 3 * k)
+    X, x, tri = np.vstack(X), np.vstack(x), np.array(tri)
+    G, A0 = reference_triangles(X, tri)
+    return X, x, tri, G, A0
+
+
+@pytest.mark.parametrize("law,Jm", [("neo_hookean", np.inf), ("gent", 4.0)])
+def test_tension_field_membrane_tangent_and_energy(law, Jm):
+    """The relaxed (tension-field) membrane in taut, wrinkled and slack states: forces are
+    the energy's gradient and the stiffness the forces' derivative."""
+    from mechanics.effects.membrane import _relax, membrane_energy_terms
+
+    X, x, tri, G, A0 = _triangle_states()
+
+    def terms(y, tangent=True):
+        return membrane_energy_terms(y, tri, G, A0, 2.0, 4.0, law=law, Jm=Jm, tangent=tangent)
+
+    # the chosen stretches cover all three states
+    F = np.einsum("tai,taA->tiA", x[tri], G)
+    C = np.einsum("tiA,tiB->tAB", F, F)
+    c = np.linalg.det(C)
+    I1 = C[:, 0, 0] + C[:, 1, 1] + 1 / c
+    relaxed, *_ = _relax(C, c, I1, np.zeros((7, 2, 2)), np.zeros((7, 2, 2, 2, 2)))
+    assert np.sum(relaxed == I1) >= 2 and np.sum(relaxed == 3.0) >= 2
+    assert np.sum((relaxed != I1) & (relaxed != 3.0)) >= 2
+    W, fe, Ke = terms(x)
+    y = x.reshape(-1)
+    err_f = err_k = 0.0
+    for d in range(y.size):
+        yp, ym = y.copy(), y.copy()
+        yp[d] += H
+        ym[d] -= H
+        Wp, fp, _ = terms(yp.reshape(-1, 3), False)
+        Wm, fm, _ = terms(ym.reshape(-1, 3), False)
+        t, loc = divmod(d // 3, 3)
+        comp = d % 3
+        err_f = max(err_f, abs((Wp.sum() - Wm.sum()) / (2 * H) - fe[t, loc, comp]))
+        col = (fp[t] - fm[t]).reshape(-1) / (2 * H)
+        err_k = max(err_k, np.abs(col - Ke[t][:, 3 * loc + comp]).max())
+    assert err_f < TOL * np.abs(fe).max()
+    assert err_k < TOL * np.abs(Ke).max()
