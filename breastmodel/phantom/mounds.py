@@ -59,6 +59,7 @@ def mound_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
     Mesh with regions breast_left 1, muscle 2, breast_right 3 (gland 4, 5), face sets
     ``skin`` and ``interface`` (conforming, muscle -> breast normal), node sets ``fixed``
     (posterior slab face), ``skin_superior``/``skin_inferior`` (skin nodes on the z ends),
+    ``skin_lateral`` (skin nodes on the x ends, where the skin would go on around the torso),
     ``fascia_superior``/``fascia_inferior`` (interface nodes on the z ends) and node pairs
     ``ligament_inframammary``, ``ligament_medial``, ``ligament_lateral``.
     """
@@ -111,6 +112,7 @@ def mound_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
         "fixed": idx[:, :, 0].ravel(),
         "skin_superior": skin_nodes[zn[skin_nodes] > half_height - tol],
         "skin_inferior": skin_nodes[zn[skin_nodes] < -half_height + tol],
+        "skin_lateral": skin_nodes[np.abs(nodes[skin_nodes, 0]) > half_width - tol],
         "fascia_superior": if_nodes[zn[if_nodes] > half_height - tol],
         "fascia_inferior": if_nodes[zn[if_nodes] < -half_height + tol],
     }

@@ -7,7 +7,8 @@ import numpy as np
 from mechanics.mesh import BREAST_REGIONS, Mesh
 
 #: Node sets that belong to the breast side (they follow the breast copies of the nodes).
-BREAST_NODE_SETS = ("skin_superior", "skin_inferior", "fascia_superior", "fascia_inferior")
+BREAST_NODE_SETS = ("skin_superior", "skin_inferior", "skin_lateral", "fascia_superior",
+                    "fascia_inferior")
 #: Face sets that belong to the breast side.
 BREAST_FACE_SETS = ("skin", "interface")
 

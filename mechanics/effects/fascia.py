@@ -11,10 +11,13 @@ from mechanics.effects.membrane import JM_MEMBRANE, MembraneEffect
 class Fascia(MembraneEffect):
     """Neo-Hookean (or Gent, option ``law="gent"``) membrane triangles on face set
     ``interface``: the deep layer of the superficial fascia (0.1 mm, E fitted in 80-250 kPa,
-    best 120 kPa). On a split interface it lies on the breast side and slides with it."""
+    best 120 kPa). On a split interface it lies on the breast side and slides with it.
+    Held between the breast and the muscle it cannot wrinkle, so by default it keeps the
+    plain law in compression (option ``wrinkling``, see ``membrane``)."""
 
     name = "fascia"
     face_set = "interface"
+    wrinkling = "none"
     requires = ("face_sets:interface",)
     doc = "hyperelastic fascia membrane (0.1 mm) between breast and pectoral muscle"
     params = (

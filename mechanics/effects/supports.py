@@ -1,4 +1,6 @@
-"""The paper's Dirichlet supports: posterior muscle fixed, fascia ends in z, skin ends in y."""
+"""The paper's Dirichlet supports: posterior muscle fixed, fascia ends in z, skin ends in y;
+optionally the lateral ends of the skin, where a model cut at the field of view ends but the
+skin goes on around the torso."""
 
 from __future__ import annotations
 
@@ -16,6 +18,13 @@ class Supports(Effect):
 
     Options: ``muscle``, ``fascia_ends``, ``skin_ends`` (bool, default True) switch each
     group; ``fascia_component``, ``skin_component`` (0, 1 or 2).
+
+    ``skin_lateral`` (bool, default False: not in the paper) also fixes the lateral ends of
+    the skin (node set ``skin_lateral``) in ``lateral_component`` (default 0, x). On a
+    model whose chest wall is a flat slab nothing else holds the breast sideways in a tilted
+    position but the ligament cables and friction; the paper's 1 mm^2 cables cannot (see
+    ``bench/effects_box.py``). In a body the skin is a closed sleeve around the torso, and
+    its tension is what this support stands for.
     """
 
     name = "supports"
@@ -26,8 +35,10 @@ class Supports(Effect):
         super().__init__(mesh, **values)
         opts = dict(self.options)
         use = {k: bool(opts.pop(k, True)) for k in ("muscle", "fascia_ends", "skin_ends")}
+        use["skin_lateral"] = bool(opts.pop("skin_lateral", False))
         comp = {k: int(opts.pop(k, d)) for k, d in (("fascia_component", 2),
-                                                    ("skin_component", 1))}
+                                                    ("skin_component", 1),
+                                                    ("lateral_component", 0))}
         if opts:
             raise ValueError(f"effect 'supports': unknown option(s) {sorted(opts)}")
         if any(c not in (0, 1, 2) for c in comp.values()):
@@ -39,6 +50,8 @@ class Supports(Effect):
             wanted.append((("fascia_superior", "fascia_inferior"), (comp["fascia_component"],)))
         if use["skin_ends"]:
             wanted.append((("skin_superior", "skin_inferior"), (comp["skin_component"],)))
+        if use["skin_lateral"]:
+            wanted.append((("skin_lateral",), (comp["lateral_component"],)))
         self._constraints = []
         for names, comps in wanted:
             missing = [n for n in names if n not in mesh.node_sets]

@@ -160,6 +160,10 @@ def test_supports_constrain_the_paper_sets(mesh):
     assert c[2].components == (1,)
     assert set(c[2].nodes) == set(s["skin_superior"]) | set(s["skin_inferior"])
     assert len(EFFECTS["supports"](mesh, skin_ends=False, fascia_ends=False).constraints()) == 1
+    lateral = EFFECTS["supports"](mesh, skin_lateral=True).constraints()[3]
+    assert lateral.components == (0,) and set(lateral.nodes) == set(s["skin_lateral"])
+    x = mesh.nodes[s["skin_lateral"], 0]
+    assert len(x) > 0 and np.allclose(np.abs(x), np.abs(mesh.nodes[:, 0]).max())
 
 
 def test_strain_stiffening_and_regions_modify_materials(mesh):
