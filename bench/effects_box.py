@@ -11,9 +11,13 @@ Run: ``.venv/bin/python bench/effects_box.py [--cells 8,6,3,2] [--positions pron
 [--changes '{"ligaments": {"E": 100, "area": 10}}'] [--out bench/results/effects_box_X.json]``
 
 ``--changes`` replaces effect tables of the paper-like model (tests/breastlike.py
-``paper_model``): e.g. thicker ligament cables, with which the tilted position has an
-equilibrium on the muscle slab (with the paper's 1 mm^2 cables the breast slides ~45-75 mm
-laterally and part of the interface leaves the 200 mm wide slab; see the json notes).
+``paper_model``). With the paper's supports the tilted position has no equilibrium on this
+flat muscle slab: nothing but friction and the ligament cables holds the breast sideways
+(the fascia ends are fixed in z, the skin ends in y), and the budget printed first shows the
+cables would need a mean strain of 176 % even if all pulled along x; the breast slides off
+the 200 mm slab first. ``--changes '{"supports": {"skin_lateral": true}}'`` holds the skin's
+lateral cut as well (the skin sleeve around a torso): ``bench/results/effects_box_skin_lateral
+.json``.
 """
 
 from __future__ import annotations
@@ -28,9 +32,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+import numpy as np  # noqa: E402
 from breastlike import breastlike_mesh, paper_model  # noqa: E402
 
 from mechanics.effects._interface import split_interface
+from mechanics.mesh import REGIONS
 from mechanics.solver import SolverError, SolverOptions, solve
 
 #: (breast E, skin E, fascia E) kPa: the 8 corners and the centre of the paper's search box.
@@ -61,6 +67,24 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
     else:
         row.update(load=0.0, newton_total=None, cutbacks=None, max_displacement_mm=None)
     return row
+
+
+def sideways_budget(mesh, changes) -> dict:
+    """Force balance of the tilted position: the sideways weight of the breast, what Coulomb
+    friction can carry at most (k times the weight's normal part), and the mean strain the
+    ligament cables would need to carry the rest if every one pulled along x (mN)."""
+    model = paper_model(mesh, *BOX[-1], "tilted", **(changes or {}))
+    eff = {e.name: e for e in model.effects}
+    weight = eff["gravity"].nodal_weight(mesh.nodes)
+    breast = np.unique(mesh.tets[mesh.region != REGIONS["muscle"]])
+    sideways, normal = (abs(float(weight[breast, i].sum())) for i in (0, 1))
+    friction = float(eff["sliding"].values.get("friction", 0.0)) * normal if "sliding" in eff \
+        else 0.0
+    lig = eff.get("ligaments")
+    EA = 0.0 if lig is None else float(lig.E.sum()) * lig.values["area"]
+    return {"sideways_weight_mN": sideways, "friction_capacity_mN": friction,
+            "cables": 0 if lig is None else len(lig.pairs), "cables_EA_total_mN": EA,
+            "cable_strain_needed": (sideways - friction) / EA if EA else None}
 
 
 def main() -> int:
@@ -100,6 +124,13 @@ def main() -> int:
                    "singular_shift": SolverOptions.singular_shift},
         "points": [],
     }
+    if "tilted" in positions:
+        result["tilted_budget"] = budget = sideways_budget(mesh, changes)
+        print("tilted: sideways weight {sideways_weight_mN:.0f} mN, friction carries at most "
+              "{friction_capacity_mN:.0f} mN, {cables} cables of total EA {cables_EA_total_mN:.0f}"
+              " mN".format(**budget) + (f" would need a mean strain of "
+                                        f"{budget['cable_strain_needed']:.2f}"
+                                        if budget["cable_strain_needed"] else ""))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     print(f"mesh {mesh.n_tets} tets, sliding {sliding}")
