@@ -62,15 +62,24 @@ def test_interface_is_shared_flat_and_oriented_from_muscle_to_breast(boxes_unifo
     # the patch is the 60 x 50 plane y = -SIZE[1]/2 + SPLIT, normal -y (muscle is behind)
     x = mesh.nodes
     y0 = -SIZE[1] / 2 + SPLIT
-    dev = np.abs(x[np.unique(iface), 1] - y0)
-    # flat within the envelope, except a staircase of about one element where the interface
-    # meets the skin (the embedded interface patch stops short of the outer surface there)
-    assert np.mean(dev < 1.0) > 0.75 and dev.max() < H
     n = triangle_normals(x, iface)
     area = triangle_areas(x, iface)
-    # area-weighted mean normal: -y; the rim staircase tilts a few % of the area
-    assert (area * n[:, 1]).sum() / area.sum() < -0.9
-    assert area.sum() == pytest.approx(SIZE[0] * SIZE[2], rel=0.1)
+    # Away from the rim (one element in from the box's sides) the patch is that plane: over
+    # 14 fTetWild runs, node deviation <= 0.99 mm, mean normal <= -0.9992, area within 2.9 %.
+    c, lo, hi = x[iface].mean(axis=1), x.min(axis=0), x.max(axis=0)
+    inner = ((c[:, 0] > lo[0] + H) & (c[:, 0] < hi[0] - H)
+             & (c[:, 2] > lo[2] + H) & (c[:, 2] < hi[2] - H))
+    dev = np.abs(x[np.unique(iface[inner]), 1] - y0)
+    assert dev.max() < 0.25 * H
+    assert (area[inner] * n[inner, 1]).sum() / area[inner].sum() < -0.99
+    assert area[inner].sum() == pytest.approx((SIZE[0] - 2 * H) * (SIZE[2] - 2 * H), rel=0.05)
+    # The rim is a staircase of about one element where the interface meets the skin (the
+    # embedded patch stops short of the outer surface): there it deviated up to 5.3 mm, and
+    # the whole patch's area exceeded the plane's by 6-10 % (a 2-element rim of 5 mm steps).
+    dev_all = np.abs(x[np.unique(iface), 1] - y0)
+    assert dev_all.max() < 1.5 * H
+    assert (area * n[:, 1]).sum() / area.sum() < -0.85
+    assert area.sum() == pytest.approx(SIZE[0] * SIZE[2], rel=0.15)
 
 
 def test_skin_and_fixed_sets(boxes):
