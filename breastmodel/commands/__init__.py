@@ -13,6 +13,7 @@ COMMANDS = (
     "mesh",
     "surface",
     "simulate",
+    "effects",
     "run",
     "fit",
     "sweep",

@@ -10,7 +10,9 @@ from mechanics.effects.membrane import JM_MEMBRANE, MembraneEffect
 class Skin(MembraneEffect):
     """Neo-Hookean (or Gent, option ``law="gent"``) membrane triangles on face set ``skin``,
     sharing nodes with the solid. The paper's skin layer includes the superficial layer of
-    the superficial fascia (2 mm thick, E fitted in 1-20 kPa, best 4 kPa)."""
+    the superficial fascia (2 mm thick, E fitted in 1-20 kPa, best 4 kPa). Under
+    compression it wrinkles (tension-field theory: no compressive stress; option
+    ``wrinkling="none"`` keeps the plain law, see ``mechanics/effects/membrane.py``)."""
 
     name = "skin"
     face_set = "skin"
