@@ -56,6 +56,7 @@ def inverse_fixed_point(
     tol: float = 1e-3,
     max_iter: int = 50,
     anderson: int = 5,
+    max_failures: int = 3,
     options: SolverOptions = SolverOptions(),
     callback: Callable[[dict], None] | None = None,
 ) -> StressFreeResult:
@@ -68,6 +69,9 @@ def inverse_fixed_point(
     tol : stop when the largest nodal mismatch |x(X) - x_target| is below this, mm
     max_iter : forward solves allowed
     anderson : memory of Anderson mixing; 0 gives the plain fixed point
+    max_failures : consecutive failed forward solves (each damped half-way back to the last
+        good estimate) before giving up: a model with no equilibrium near the target would
+        otherwise spend ``max_iter`` full cut-back cascades
     callback : called with each iteration's history row (progress reporting)
     """
     x_target = np.asarray(x_target, np.float64)
@@ -78,12 +82,16 @@ def inverse_fixed_point(
     history: list[dict] = []
     state = None
     X_good = None  # the last estimate whose forward solve converged
+    failures = 0
     t0 = time.perf_counter()
     for it in range(1, max_iter + 1):
         try:
             state = _forward(model, X, u, options)
         except SolverError as exc:
-            if X_good is None:
+            failures += 1
+            if X_good is None or failures > max_failures:
+                log.warning("inverse: giving up after %d consecutive failed forward solves",
+                            failures)
                 raise
             # The update went too far: step back half-way to the last good estimate.
             log.warning("inverse: forward solve failed (%s); damping the update", exc)
@@ -92,6 +100,7 @@ def inverse_fixed_point(
             F.clear()
             continue
         X_good = X.copy()
+        failures = 0
         u = state.u
         f = (x_target - state.x).reshape(-1)
         err = np.linalg.norm(f.reshape(-1, 3), axis=1)

@@ -60,3 +60,25 @@ def test_paper_fixed_point_reduces_surface_error(truth):
     first, last = res.history[0]["mean_error"], min(h["mean_error"] for h in res.history)
     assert first > 3.0
     assert last < 0.2 * first
+
+
+def test_inverse_gives_up_after_repeated_failed_forward_solves(truth, monkeypatch):
+    """A model with no equilibrium near the target: after the first good forward solve every
+    damped retry fails; the inverse stops after ``max_failures`` of them, not ``max_iter``."""
+    import mechanics.stress_free as sf
+    from mechanics.solver import SolverError
+
+    mesh, x_loaded = truth
+    model = _loaded(mesh.with_nodes(x_loaded))
+    real, calls = sf._forward, []
+
+    def forward(*args):
+        calls.append(1)
+        if len(calls) > 1:
+            raise SolverError("mechanics: no equilibrium (test)")
+        return real(*args)
+
+    monkeypatch.setattr(sf, "_forward", forward)
+    with pytest.raises(SolverError, match="no equilibrium"):
+        inverse_fixed_point(model, x_loaded, tol=1e-9, max_iter=50, max_failures=3)
+    assert len(calls) == 1 + 4
