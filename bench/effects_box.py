@@ -31,13 +31,17 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+_HERE = Path(__file__).resolve().parent
+# The repository first, tests last, bench/ not at all: bench/meshing.py and the namespace
+# directory tests/meshing/ would shadow the meshing package.
+sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.append(str(_HERE.parent / "tests"))
 import numpy as np  # noqa: E402
 from breastlike import breastlike_mesh, paper_model  # noqa: E402
 
-from mechanics.effects._interface import split_interface
-from mechanics.mesh import REGIONS
-from mechanics.solver import SolverError, SolverOptions, solve
+from mechanics.effects._interface import split_interface  # noqa: E402
+from mechanics.mesh import REGIONS, Mesh  # noqa: E402
+from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 
 #: (breast E, skin E, fascia E) kPa: the 8 corners and the centre of the paper's search box.
 BOX = list(itertools.product((0.1, 4.0), (1.0, 20.0), (80.0, 250.0))) + [(2.05, 10.5, 165.0)]
@@ -67,6 +71,22 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
     else:
         row.update(load=0.0, newton_total=None, cutbacks=None, max_displacement_mm=None)
     return row
+
+
+def phantom_mesh(path: Path, size_mm: float) -> Mesh:
+    """The half-size phantom anatomy meshed by the project's meshing stage (saved to ``path``
+    once: fTetWild meshes differ from run to run)."""
+    if path.exists():
+        return Mesh.load_npz(path)
+    import meshing
+    from breastmodel.phantom import Anatomy
+    from breastmodel.phantom.simulated import stress_free_labels
+
+    mesh = meshing.mesh_labels(stress_free_labels(Anatomy.small(), voxel_size=1.0),
+                               size_mm=size_mm, keep_gland=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    mesh.save_npz(path)
+    return mesh
 
 
 def sideways_budget(mesh, changes) -> dict:
@@ -104,6 +124,12 @@ def main() -> int:
                     help="JSON: effect tables of the paper-like model to replace")
     ap.add_argument("--stagnate-after", type=int, default=SolverOptions.stagnate_after,
                     help="SolverOptions.stagnate_after (0: no early cut-back)")
+    ap.add_argument("--phantom-mesh", type=Path, default=None,
+                    help="run on an fTetWild mesh of the half-size phantom anatomy (curved "
+                         "chest wall) instead: a saved Mesh .npz, meshed and written there "
+                         "first when missing")
+    ap.add_argument("--phantom-size", type=float, default=8.0,
+                    help="element size when meshing the phantom, mm")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects_box.json"))
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
@@ -113,9 +139,14 @@ def main() -> int:
     changes = json.loads(args.changes)
     options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks,
                             stagnate_after=args.stagnate_after)
-    mesh = split_interface(breastlike_mesh(cells=cells))
+    if args.phantom_mesh is None:
+        mesh = split_interface(breastlike_mesh(cells=cells))
+        source = {"cells": cells}
+    else:
+        mesh = split_interface(phantom_mesh(args.phantom_mesh, args.phantom_size))
+        source = {"phantom_mesh": str(args.phantom_mesh)}
     result = {
-        "mesh": {"cells": cells, "tets": mesh.n_tets, "nodes": mesh.n_nodes},
+        "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         "sliding": sliding,
         "changes": changes,
