@@ -17,7 +17,9 @@ flat muscle slab: nothing but friction and the ligament cables holds the breast 
 cables would need a mean strain of 176 % even if all pulled along x; the breast slides off
 the 200 mm slab first. ``--changes '{"supports": {"skin_lateral": true}}'`` holds the skin's
 lateral cut as well (the skin sleeve around a torso): ``bench/results/effects_box_skin_lateral
-.json``.
+.json``. ``--phantom-mesh bench/results/phantom_small_8mm.npz`` runs the box with the paper's
+supports on a meshed phantom whose chest wall curves round the torso:
+``bench/results/effects_box_phantom.json``.
 """
 
 from __future__ import annotations
