@@ -196,7 +196,7 @@ def summed_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray, n: 
     block kind) overlap into ~0.2M distinct entries. Summed as the sparse product
     E_r^T blockdiag(K) E_c (E one-hot dof maps), which sums duplicates without a sort and
     drops exact zeros. Measured on the 20k-tet phantom (2496 points, friction on, a perturbed
-    state): 1.66M triplets -> 0.11M; the product costs 0.027 s here, the solver's conversion
+    state): 1.66M triplets -> 0.11M; the product costs 0.02 s here, the solver's conversion
     of the effect triplets to its reduced CSR (``ReducedSystem.extra_upper``) fell from
     0.057 s to 0.002 s, and the concatenation of the effects' triplets shrank alike.
     """
@@ -205,12 +205,11 @@ def summed_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray, n: 
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
     Er_t = sp.csc_matrix((np.ones(S * r), np.asarray(row_dofs).ravel(), np.arange(S * r + 1)),
                          shape=(n, S * r))
-    Ec = sp.csr_matrix((np.ones(S * c), np.asarray(col_dofs).ravel(), np.arange(S * c + 1)),
-                       shape=(S * c, n))
-    local = np.broadcast_to(np.arange(S)[:, None, None] * c + np.arange(c), (S, r, c))
-    Kb = sp.csr_matrix((np.ascontiguousarray(K).ravel(), local.ravel(),
-                        np.arange(0, S * r * c + 1, c)), shape=(S * r, S * c))
-    A = (Er_t @ (Kb @ Ec)).tocsr()
+    # blockdiag(K) E_c: row (s, i) holds K[s, i, :] at the columns col_dofs[s]
+    KEc = sp.csr_matrix((np.ascontiguousarray(K).ravel(),
+                         np.broadcast_to(np.asarray(col_dofs)[:, None, :], (S, r, c)).ravel(),
+                         np.arange(0, S * r * c + 1, c)), shape=(S * r, n))
+    A = (Er_t @ KEc).tocsr()
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
     return rows, A.indices.astype(np.int64), A.data
 
