@@ -19,11 +19,12 @@ Edge of the muscle surface: the surface extends past its boundary edges by an ex
 (option ``edge_extension``, in heights of the edge triangle, default 1), in which a point is
 held by the extended plane of the edge triangle, standing in for the chest wall that goes on
 past the muscle (measured: supine, 20k-tet phantom, 59 points end 0.17 heights past the
-lateral slab edges; releasing them there took the solve from 11 to 40 Newton iterations). A
-point whose projection onto its closest triangle's plane falls further out across a boundary
-edge (:func:`mechanics.effects._contact.past_boundary`) has slid off the muscle (before, the
-whole extended plane held it, however far out) and is released: no normal or friction force
-and no stiffness (its friction anchor is kept for when it slides back).
+lateral slab edges; releasing them with a zone of 0.1 took the solve from 11 to 40 Newton
+iterations). A point whose projection onto its closest triangle's plane falls further out
+across a boundary edge (:func:`mechanics.effects._contact.past_boundary`) has slid off the
+muscle (before, the whole extended plane held it, however far out) and is released: no
+normal or friction force and no stiffness (its friction anchor is kept for when it slides
+back).
 :meth:`Sliding.released` lists them and :meth:`Sliding.begin_step` logs how many there are at
 each converged state (logger ``mechanics.effects.sliding``, INFO).
 
