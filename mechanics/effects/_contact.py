@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 
@@ -77,6 +78,47 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8)
     return cand[rows, kk], barys[rows, kk, mm], flat[rows, best]
 
 
+def boundary_edges(tri: np.ndarray) -> np.ndarray:
+    """(T, 3) bool: the edge of each triangle opposite its vertex i lies on the boundary of
+    the surface (it belongs to this triangle only)."""
+    tri = np.asarray(tri, np.int64)
+    e = np.stack([tri[:, [1, 2]], tri[:, [2, 0]], tri[:, [0, 1]]], axis=1)  # (T, 3, 2)
+    e = np.sort(e, axis=2).reshape(-1, 2)
+    _, inv, cnt = np.unique(e, axis=0, return_inverse=True, return_counts=True)
+    return (cnt[inv.ravel()] == 1).reshape(-1, 3)
+
+
+def past_boundary(p: np.ndarray, xa: np.ndarray, bedge: np.ndarray, *,
+                  tol: float = 0.1) -> np.ndarray:
+    """(S,) 1.0 where the projection of a point onto the plane of its closest triangle falls
+    outside the triangle across a boundary edge of the surface by more than ``tol`` of the
+    triangle's height over that edge (the point has slid past the edge of the surface),
+    else 0.0.
+
+    Parameters
+    ----------
+    p : (S, 3) points, mm
+    xa : (S, 3, 3) vertices of each point's closest triangle, mm
+    bedge : (S, 3) bool, :func:`boundary_edges` of those triangles
+    tol : extension zone, in barycentric units (heights of the edge triangle over that
+        edge): the surface reaches that far past its boundary edges (Abaqus extends master
+        surfaces by 0.1 of the facet size by default); > 0 keeps the boundary nodes of a
+        node-to-surface contact, which lie on the edge, in contact through small slips
+    """
+    a, b, c = xa[:, 0], xa[:, 1], xa[:, 2]
+    v0, v1, v2 = b - a, c - a, p - a
+    d00 = np.einsum("si,si->s", v0, v0)
+    d01 = np.einsum("si,si->s", v0, v1)
+    d11 = np.einsum("si,si->s", v1, v1)
+    d20 = np.einsum("si,si->s", v2, v0)
+    d21 = np.einsum("si,si->s", v2, v1)
+    den = d00 * d11 - d01 * d01
+    lv = (d11 * d20 - d01 * d21) / den
+    lw = (d00 * d21 - d01 * d20) / den
+    lam = np.stack([1.0 - lv - lw, lv, lw], axis=1)
+    return np.any((lam < -tol) & bedge, axis=1).astype(float)
+
+
 def facet_normals(x: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(T, 3) unit normals (right-hand rule)."""
     n = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
@@ -143,6 +185,33 @@ def coo_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray):
     r = np.repeat(row_dofs[:, :, None], col_dofs.shape[1], axis=2)
     c = np.repeat(col_dofs[:, None, :], row_dofs.shape[1], axis=1)
     return r.ravel(), c.ravel(), K.ravel()
+
+
+def summed_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray, n: int):
+    """COO triplets of the sum of per-contact blocks K (S, r, c) at dofs (S, r) x (S, c),
+    duplicates summed (each (row, col) once), for an n x n matrix.
+
+    The same matrix as :func:`coo_blocks`, with far fewer triplets: neighbouring contact
+    points share nodes, so the 18 x 18 blocks of 2.5k sliding points (0.8M triplets per
+    block kind) overlap into ~0.2M distinct entries. Summed as the sparse product
+    E_r^T blockdiag(K) E_c (E one-hot dof maps), which sums duplicates without a sort and
+    drops exact zeros. Measured on the 20k-tet phantom (2496 points, friction on, a perturbed
+    state): 1.66M triplets -> 0.11M; the product costs 0.02 s here, the solver's conversion
+    of the effect triplets to its reduced CSR (``ReducedSystem.extra_upper``) fell from
+    0.057 s to 0.002 s, and the concatenation of the effects' triplets shrank alike.
+    """
+    S, r, c = K.shape
+    if S == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    Er_t = sp.csc_matrix((np.ones(S * r), np.asarray(row_dofs).ravel(), np.arange(S * r + 1)),
+                         shape=(n, S * r))
+    # blockdiag(K) E_c: row (s, i) holds K[s, i, :] at the columns col_dofs[s]
+    KEc = sp.csr_matrix((np.ascontiguousarray(K).ravel(),
+                         np.broadcast_to(np.asarray(col_dofs)[:, None, :], (S, r, c)).ravel(),
+                         np.arange(0, S * r * c + 1, c)), shape=(S * r, n))
+    A = (Er_t @ KEc).tocsr()
+    rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
+    return rows, A.indices.astype(np.int64), A.data
 
 
 def node_dofs(nodes: np.ndarray) -> np.ndarray:

@@ -3,6 +3,7 @@ no-separation interface under a pulling load."""
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from breastlike import boundary_faces, breastlike_mesh, paper_model
 from zoo import box
 
@@ -335,3 +336,144 @@ def test_two_mounds_prone_and_supine_slide_on_friction_alone(gy):
     assert abs(slide[0]) <= 1e-6 * W
     left = breast[X[breast, 0] > 0]
     assert np.abs(st.u[left, 0]).max() > 0.1  # mm: the interface does slide
+
+
+def _overhang(friction=0.1):
+    """A block (x in [4, 14]) resting on a slab (x in [0, 10]): its bottom overhangs the slab's
+    edge x = 10 by 4 mm; the slab's top triangles are 10/3 mm wide, and the slab's surface
+    extends 0.1 of that past its edge."""
+    mesh = stack(((3, 3, 1), (10.0, 10.0, 2.0), (0.0, 0.0, 0.0)),
+                 ((5, 4, 2), (10.0, 10.0, 4.0), (4.0, 0.0, 2.0)))
+    eff = build_model(mesh, materials(1.0, 1.0), {
+        "sliding": {"friction": friction, "penalty": 50.0, "tangential_penalty": 20.0,
+                    "edge_extension": 0.1}}).effects[0]
+    return mesh, eff
+
+
+def test_points_past_the_edge_of_the_muscle_surface_are_released():
+    """Contact points whose projection falls past the slab's edge (beyond the extension zone of
+    0.1 of the edge triangle's height, here 1/3 mm) are released: zero pressure, no force, no
+    stiffness; every point over the slab carries the penalty pressure of the penetration (it
+    used to be held by the extended plane of the edge triangles, under empty space)."""
+    mesh, eff = _overhang()
+    X = mesh.nodes
+    up = mesh.node_sets["upper"]
+    eff.begin_step(X, X.copy())
+    x = X.copy()
+    x[up, 2] -= 0.01  # pressed 0.01 mm into the slab
+    xp = eff.contact_points(x)
+    off = eff.released(X, x)
+    assert np.all(xp[off, 0] > 10.0) and np.all(off[xp[:, 0] > 10.0 + 10.0 / 3 * 0.1 + 1e-9])
+    assert off.any() and (~off).any()
+    p = eff.pressure(X, x)
+    np.testing.assert_allclose(p[~off], 50.0 * 0.01, rtol=1e-9)
+    assert np.all(p[off] == 0.0)
+    # the released points add nothing: forces on the nodes that only they touch vanish
+    c = eff.contribute(X, x, 1.0)
+    only_off = np.setdiff1d(np.unique(eff.sconn[off]), np.unique(eff.sconn[~off]))
+    assert only_off.size and np.all(c.force[only_off] == 0.0)
+    n = 3 * mesh.n_nodes
+    K = sp.coo_matrix((c.vals, (c.rows, c.cols)), shape=(n, n)).tocsr()
+    dofs = (3 * only_off[:, None] + np.arange(3)).ravel()
+    assert abs(K[dofs]).sum() == 0.0
+
+
+def test_sliding_tangent_with_released_points():
+    """Finite-difference check (central, h = 1e-6 mm, 1e-6 relative) of the tangent at a state
+    with released points, slipping points and points in compression and tension."""
+    mesh, eff = _overhang()
+    X = mesh.nodes
+    up = mesh.node_sets["upper"]
+    rng = np.random.default_rng(7)
+    x = X + 0.002 * rng.normal(size=X.shape)
+    x[up, 2] -= 0.01 + 0.002 * (X[up, 1] - 5.0)  # compression, tension at y = 10
+    eff.begin_step(X, x.copy())
+    x[up, 0] += 0.3  # slip past the anchors
+    off = eff.released(X, x)
+    p = eff.pressure(X, x)
+    assert off.any() and (p[~off] > 0).any() and (p[~off] < 0).any()
+    c = eff.contribute(X, x, 1.0)
+    n = 3 * mesh.n_nodes
+    K = sp.coo_matrix((c.vals, (c.rows, c.cols)), shape=(n, n)).toarray()
+    nodes = np.concatenate([eff.slaves, np.unique(eff.master)])
+    dofs = rng.choice((3 * nodes[:, None] + np.arange(3)).ravel(), 30, replace=False)
+    h, err = 1e-6, 0.0
+    for d in dofs:
+        xp_, xm_ = x.copy().reshape(-1), x.copy().reshape(-1)
+        xp_[d] += h
+        xm_[d] -= h
+        fp = eff.contribute(X, xp_.reshape(-1, 3), 1.0).force.reshape(-1)
+        fm = eff.contribute(X, xm_.reshape(-1, 3), 1.0).force.reshape(-1)
+        err = max(err, np.abs((fp - fm) / (2 * h) - K[:, d]).max())
+    assert err <= 1e-6 * np.abs(K).max()
+
+
+def test_overhanging_block_carries_its_load_on_the_slab_only():
+    """Uniform pressure on the overhanging block: the solve converges, the released points carry
+    nothing and the contact resultant equals the applied load (equilibrium, 1e-6)."""
+    mesh, _ = _overhang()
+    X = mesh.nodes
+    p = 1e-3
+    nodes, forces = _pressure_loads(mesh, p)
+    corner = np.flatnonzero(np.all(np.abs(X - [4, 0, 2]) < 1e-9, axis=1))[-1:]
+    xdir = np.flatnonzero(np.all(np.abs(X - [14, 0, 2]) < 1e-9, axis=1))[-1:]
+    model = build_model(mesh, materials(1.0, 1.0), {
+        "fixed": {"node_set": "bottom"},
+        "fixed:a": {"nodes": corner, "components": [0, 1]},
+        "fixed:b": {"nodes": xdir, "components": [1]},
+        "point_load": {"nodes": nodes, "force": forces},
+        "sliding": {"friction": 0.1, "penalty": 1e3, "edge_extension": 0.1},
+    })
+    st = solve(model, options=OPTS)
+    eff = model.effects[-1]
+    off = eff.released(X, st.x)
+    assert off.any()
+    fN = eff.pressure(X, st.x) * eff.weights(X)
+    assert np.all(fN[off] == 0.0)
+    load = -forces[:, 2].sum()
+    assert abs(fN.sum() - load) <= 1e-6 * load
+
+
+def test_summed_blocks_equal_the_plain_triplets():
+    """summed_blocks (duplicates summed by a sparse product) is the matrix of coo_blocks."""
+    from mechanics.effects._contact import coo_blocks, summed_blocks
+
+    rng = np.random.default_rng(1)
+    rd, cd = rng.integers(0, 40, (30, 6)), rng.integers(0, 40, (30, 9))
+    K = rng.normal(size=(30, 6, 9))
+    a = sp.coo_matrix((K.ravel(), (coo_blocks(rd, cd, K)[:2])), shape=(40, 40)).toarray()
+    r, c, v = summed_blocks(rd, cd, K, 40)
+    assert len(np.unique(r * 40 + c)) == len(r)  # each entry once
+    np.testing.assert_allclose(sp.coo_matrix((v, (r, c)), shape=(40, 40)).toarray(), a,
+                               atol=1e-13)
+
+
+def test_full_from_upper_reuses_its_pattern():
+    """The friction path calls full_from_upper with one pattern at every evaluation: repeated
+    calls (the cached gather from the second on) give U + strict_upper(U)^T exactly."""
+    from mechanics.system import full_from_upper
+
+    rng = np.random.default_rng(2)
+    U = sp.triu(sp.random(50, 50, density=0.2, random_state=3), format="csr")
+    for _ in range(3):
+        V = sp.csr_matrix((rng.normal(size=U.nnz), U.indices.copy(), U.indptr.copy()),
+                          shape=U.shape)
+        ref = (V + sp.triu(V, k=1).T).toarray()
+        np.testing.assert_array_equal(full_from_upper(V).toarray(), ref)
+
+
+def test_default_edge_extension_is_one_triangle_height():
+    """By default the muscle surface extends one edge-triangle height (10/3 mm here) past its
+    edge, standing in for the chest wall beyond the muscle; points further out are released."""
+    mesh = stack(((3, 3, 1), (10.0, 10.0, 2.0), (0.0, 0.0, 0.0)),
+                 ((5, 4, 2), (10.0, 10.0, 4.0), (4.0, 0.0, 2.0)))
+    eff = build_model(mesh, materials(1.0, 1.0), {"sliding": {}}).effects[0]
+    X = mesh.nodes
+    x = X.copy()
+    x[mesh.node_sets["upper"], 2] -= 0.01
+    xp = eff.contact_points(x)
+    off = eff.released(X, x)
+    np.testing.assert_array_equal(off, xp[:, 0] > 10.0 + 10.0 / 3)
+    assert off.any() and (xp[~off, 0] > 10.0).any()
+    with pytest.raises(ValueError, match="edge_extension"):
+        build_model(mesh, materials(1.0, 1.0), {"sliding": {"edge_extension": -1.0}})
