@@ -31,13 +31,14 @@ from mechanics.solver import SolverError, SolverOptions, solve
 
 GRAVITY = {"supine": (0.0, 1.0, 0.0), "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0),
            "prone": (0.0, -1.0, 0.0)}
-PAPER = {"E_left": 0.2, "E_right": 0.3, "skin": 4.0, "fascia": 120.0, "friction": 0.1}
+PAPER = {"E_left": 0.2, "E_right": 0.3, "skin": 4.0, "fascia": 120.0, "friction": 0.1,
+         "skin_lateral": False}
 
 
 def effects_config(position: str) -> dict:
     return {
         "gravity": {"direction": GRAVITY[position]},
-        "supports": {},
+        "supports": {"skin_lateral": PAPER["skin_lateral"]},
         "skin": {"E": PAPER["skin"]},
         "fascia": {"E": PAPER["fascia"]},
         "ligaments": {"E": 100.0},
@@ -110,12 +111,16 @@ def main() -> int:
     ap.add_argument("--fascia", type=float, default=PAPER["fascia"], help="fascia E, kPa")
     ap.add_argument("--friction", type=float, default=0.1, help="Coulomb coefficient k")
     ap.add_argument("--positions", default=",".join(GRAVITY), help="comma-separated positions")
+    ap.add_argument("--skin-lateral", action="store_true",
+                    help="hold the skin's lateral cut too (supports option skin_lateral): on "
+                         "this flat slab nothing else holds the breast sideways")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects.json"))
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
     if args.breast is not None:
         PAPER["E_left"] = PAPER["E_right"] = args.breast
     PAPER["skin"], PAPER["fascia"], PAPER["friction"] = args.skin, args.fascia, args.friction
+    PAPER["skin_lateral"] = args.skin_lateral
     mesh = split_interface(breastlike_mesh(cells=cells))
     options = SolverOptions()
     result = {
