@@ -6,7 +6,9 @@ import logging
 import time
 
 import numpy as np
+import scipy.sparse as sp
 import SimpleITK as sitk
+from scipy.sparse.csgraph import connected_components
 
 from mechanics.mesh import REGIONS, Mesh
 from meshing import _occupancy, _tetwild
@@ -88,6 +90,56 @@ def _clean_isolated(tets: np.ndarray, region: np.ndarray) -> np.ndarray:
         nb_region[pairs[:, 0]] = out[pairs[:, 1]]
         nb_region[pairs[:, 1]] = out[pairs[:, 0]]
         out[flip] = nb_region[flip]
+    return out
+
+
+def _fragments(tets: np.ndarray, members: np.ndarray, min_fraction: float) -> np.ndarray:
+    """Indices into ``members`` (tets of one tissue) of the groups of tets sharing nodes
+    that hold less than ``min_fraction`` of them."""
+    sub = tets[members]
+    used, local = np.unique(sub, return_inverse=True)
+    nt = len(sub)
+    rows = np.repeat(np.arange(nt), 4)  # tets and nodes as one bipartite graph
+    g = sp.coo_matrix((np.ones(4 * nt), (rows, nt + local.ravel())),
+                      shape=(nt + len(used), nt + len(used)))
+    _, label = connected_components(g, directed=False)
+    size = np.bincount(label[:nt])
+    return np.flatnonzero(size[label[:nt]] < min_fraction * nt)
+
+
+def _absorb_fragments(tets: np.ndarray, region: np.ndarray, *,
+                      min_fraction: float = 0.01) -> np.ndarray:
+    """Give tiny fragments of one tissue, which touch the rest of it only through the other
+    tissue, to that other tissue.
+
+    fTetWild leaves a few one- or two-tet fragments at the fuzzy rim of the interface. Once
+    the interface is split for sliding, a muscle fragment is held by contact alone, a
+    mechanism: on a 20k-tet phantom mesh three of them (1-2 tets each) kept every sliding
+    solve from its first load step. A muscle fragment takes the region of a breast tet it
+    shares a node with.
+    """
+    muscle = region == REGIONS["muscle"]
+    out = region.copy()
+    for tissue in (~muscle, muscle):
+        members = np.flatnonzero(tissue)
+        if len(members) == 0:
+            continue
+        small = members[_fragments(tets, members, min_fraction)]
+        if len(small) == 0:
+            continue
+        if tissue is muscle:
+            node_region = np.zeros(tets.max() + 1, np.int32)
+            for code in np.unique(region[~muscle]):  # a breast code per node
+                node_region[tets[region == code].ravel()] = code
+            codes = node_region[tets[small]]
+            fallback = REGIONS["breast_left"]
+            out[small] = [np.bincount(c[c > 0]).argmax() if (c > 0).any() else fallback
+                          for c in codes]
+        else:
+            out[small] = REGIONS["muscle"]
+        log.info("meshing: %d %s tets in fragments that touch the rest of their tissue only "
+                 "through the other; given to the other tissue", len(small),
+                 "muscle" if tissue is muscle else "breast")
     return out
 
 
@@ -283,6 +335,7 @@ def mesh_labels(
         region[in_gland & ~left] = REGIONS["gland_right"]
     nodes, tets = _drop_unused(nodes, tets)
     nodes, tets, region = _improve(nodes, tets, region, vu, fu, vb, fb, epsilon=epsilon)
+    region = _absorb_fragments(tets, region)
     sets = named_sets(nodes, tets, region, grid=grid, masks=masks, x_mid=x_mid, size_mm=size_mm)
     mesh = Mesh(nodes=nodes, tets=tets, region=region, **sets)
     say("meshing: %d nodes, %d tets (%.1f s)", mesh.n_nodes, mesh.n_tets, time.perf_counter() - t0)

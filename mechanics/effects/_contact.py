@@ -24,7 +24,8 @@ def nodal_areas(X: np.ndarray, tri: np.ndarray, nodes: np.ndarray) -> np.ndarray
     return w[nodes]
 
 
-def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8):
+def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
+                   normals: np.ndarray | None = None, min_cos: float = 0.5):
     """Closest triangle of a surface to each point.
 
     Parameters
@@ -33,6 +34,14 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8)
     x : (N, 3) node positions, mm
     tri : (T, 3) surface triangles
     k : candidate triangles per point (nearest centroids)
+    normals : (S, 3) unit normals of the points' own surface, oriented as the triangles';
+        when given, a triangle facing away (normal . n < ``min_cos``) is a candidate only
+        if no candidate faces the point. Where a surface folds (the staircase rim of a
+        meshed interface, 90 degree steps), the closest triangle otherwise flips between
+        tread and riser from one Newton iteration to the next, and the contact force with
+        it (measured on a 20k-tet meshed phantom: gaps jumping to 2-7 mm, no load step
+        converging)
+    min_cos : see ``normals``
 
     Returns
     -------
@@ -71,6 +80,13 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8)
         cands.append((dist, bary))
     dists = np.stack([d for d, _ in cands], axis=-1)  # (S, k, 4)
     barys = np.stack([b for _, b in cands], axis=-2)  # (S, k, 4, 3)
+    if normals is not None:
+        nt = np.cross(b - a, c - a)
+        cos = np.einsum("ski,si->sk", nt, normals) / np.maximum(
+            np.linalg.norm(nt, axis=-1), 1e-300)
+        away = cos < min_cos
+        away &= ~np.all(away, axis=1, keepdims=True)  # none faces the point: keep them all
+        dists = np.where(away[..., None], np.inf, dists)
     flat = dists.reshape(len(p), -1)
     best = np.argmin(flat, axis=1)
     rows = np.arange(len(p))

@@ -250,12 +250,22 @@ class Sliding(_InterfaceContact):
         """(P, 3) current positions of the contact points on the breast side, mm."""
         return np.einsum("pm,pmi->pi", self.sN, x[self.sconn])
 
+    def point_normals(self, x: np.ndarray) -> np.ndarray | None:
+        """(P, 3) unit normals of the breast-side triangles the contact points lie on (the
+        pairing ignores muscle triangles facing away from them); None for node points."""
+        if self.points == 0:
+            return None
+        xt = x[self.sconn]
+        n = np.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
+
     # -- normal part -------------------------------------------------------------------
     def _normal(self, X, x, *, hessian=True):
         """Pairing, gap (with derivatives), normal force fN (P,) mN, weights w (P,) mm^2 and
         ``on`` (P,) 1.0 for points over the muscle surface, 0.0 for released ones."""
         xp = self.contact_points(x)
-        facet, _, _ = closest_facets(xp, x, self.master, k=self.k_search)
+        facet, _, _ = closest_facets(xp, x, self.master, k=self.k_search,
+                                     normals=self.point_normals(x))
         xm = x[self.master[facet]]
         nodes = np.concatenate([self.sconn, self.master[facet]], axis=1)
         g, dg, d2g = signed_gap(xp, xm, hessian=hessian)
@@ -318,7 +328,8 @@ class Sliding(_InterfaceContact):
         return b * on, db * on
 
     def _set_anchors(self, x, points):
-        facet, bary, _ = closest_facets(points, x, self.master, k=self.k_search)
+        facet, bary, _ = closest_facets(points, x, self.master, k=self.k_search,
+                                        normals=self.point_normals(x))
         self.anchor_facet, self.anchor_bary = facet, bary
         self.anchor_normal = facet_normals(x, self.master)[facet]
 

@@ -167,3 +167,23 @@ def test_exports_round_trip(boxes, tmp_path):
     p = meshio.read(write_ply(v, mesh.face_sets["skin"], tmp_path / "s.ply"))
     assert np.allclose(p.points, v) and np.array_equal(
         p.cells_dict["triangle"], mesh.face_sets["skin"])
+
+
+def test_tissue_fragments_go_to_the_other_tissue():
+    """A muscle tet touching only breast tets, and a breast tet touching only muscle, are
+    fragments (held by contact alone once the interface is split): each takes the other
+    tissue's region; the two bodies keep theirs."""
+    from zoo import box
+
+    from meshing.volume import _absorb_fragments
+
+    mesh = box(shape=(8, 8, 4), size=(8.0, 8.0, 4.0))
+    z = mesh.nodes[mesh.tets].mean(axis=1)[:, 2]
+    region = np.where(z < 2.0, REGIONS["muscle"], REGIONS["breast_left"]).astype(np.int32)
+    top = np.flatnonzero(z > 3.0)[0]  # a tet in the top layer: only breast around it
+    bottom = np.flatnonzero(z < 1.0)[0]  # a tet in the bottom layer: only muscle around it
+    region[top], region[bottom] = REGIONS["muscle"], REGIONS["breast_left"]
+    out = _absorb_fragments(mesh.tets, region)
+    assert out[top] == REGIONS["breast_left"] and out[bottom] == REGIONS["muscle"]
+    changed = np.flatnonzero(out != region)
+    assert sorted(changed) == sorted([top, bottom])
