@@ -22,12 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+_HERE = Path(__file__).resolve().parent
+# The repository first, tests last, bench/ not at all: bench/meshing.py and the namespace
+# directory tests/meshing/ would shadow the meshing package.
+sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+sys.path.append(str(_HERE.parent / "tests"))
 from breastlike import breastlike_mesh  # noqa: E402
 
-from mechanics.effects._interface import split_interface
-from mechanics.model import build_model
-from mechanics.solver import SolverError, SolverOptions, solve
+from mechanics.effects._interface import split_interface  # noqa: E402
+from mechanics.model import build_model  # noqa: E402
+from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 
 GRAVITY = {"supine": (0.0, 1.0, 0.0), "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0),
            "prone": (0.0, -1.0, 0.0)}
@@ -111,6 +115,12 @@ def main() -> int:
     ap.add_argument("--fascia", type=float, default=PAPER["fascia"], help="fascia E, kPa")
     ap.add_argument("--friction", type=float, default=0.1, help="Coulomb coefficient k")
     ap.add_argument("--positions", default=",".join(GRAVITY), help="comma-separated positions")
+    ap.add_argument("--phantom-mesh", type=Path, default=None,
+                    help="an fTetWild mesh of the half-size phantom anatomy (curved chest "
+                         "wall) instead of the flat-slab mesh: a saved Mesh .npz, meshed at "
+                         "--phantom-size and written there first when missing")
+    ap.add_argument("--phantom-size", type=float, default=4.3,
+                    help="element size when meshing the phantom, mm (4.3: ~20k tets)")
     ap.add_argument("--skin-lateral", action="store_true",
                     help="hold the skin's lateral cut too (supports option skin_lateral): on "
                          "this flat slab nothing else holds the breast sideways")
@@ -121,10 +131,19 @@ def main() -> int:
         PAPER["E_left"] = PAPER["E_right"] = args.breast
     PAPER["skin"], PAPER["fascia"], PAPER["friction"] = args.skin, args.fascia, args.friction
     PAPER["skin_lateral"] = args.skin_lateral
-    mesh = split_interface(breastlike_mesh(cells=cells))
+    if args.phantom_mesh is None:
+        mesh = split_interface(breastlike_mesh(cells=cells))
+        source = {"cells": cells}
+    else:
+        from breastmodel.phantom import Anatomy
+        from breastmodel.phantom.simulated import anatomy_mesh
+
+        mesh = split_interface(anatomy_mesh(Anatomy.small(), size_mm=args.phantom_size,
+                                            path=args.phantom_mesh))
+        source = {"phantom_mesh": str(args.phantom_mesh)}
     options = SolverOptions()
     result = {
-        "mesh": {"cells": cells, "tets": mesh.n_tets, "nodes": mesh.n_nodes,
+        "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes,
                  "skin_triangles": len(mesh.face_sets["skin"]),
                  "interface_triangles": len(mesh.face_sets["interface"])},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},

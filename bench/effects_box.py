@@ -42,7 +42,7 @@ import numpy as np  # noqa: E402
 from breastlike import breastlike_mesh, paper_model  # noqa: E402
 
 from mechanics.effects._interface import split_interface  # noqa: E402
-from mechanics.mesh import REGIONS, Mesh  # noqa: E402
+from mechanics.mesh import REGIONS  # noqa: E402
 from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 
 #: (breast E, skin E, fascia E) kPa: the 8 corners and the centre of the paper's search box.
@@ -73,22 +73,6 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
     else:
         row.update(load=0.0, newton_total=None, cutbacks=None, max_displacement_mm=None)
     return row
-
-
-def phantom_mesh(path: Path, size_mm: float) -> Mesh:
-    """The half-size phantom anatomy meshed by the project's meshing stage (saved to ``path``
-    once: fTetWild meshes differ from run to run)."""
-    if path.exists():
-        return Mesh.load_npz(path)
-    import meshing
-    from breastmodel.phantom import Anatomy
-    from breastmodel.phantom.simulated import stress_free_labels
-
-    mesh = meshing.mesh_labels(stress_free_labels(Anatomy.small(), voxel_size=1.0),
-                               size_mm=size_mm, keep_gland=False)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    mesh.save_npz(path)
-    return mesh
 
 
 def sideways_budget(mesh, changes) -> dict:
@@ -145,7 +129,11 @@ def main() -> int:
         mesh = split_interface(breastlike_mesh(cells=cells))
         source = {"cells": cells}
     else:
-        mesh = split_interface(phantom_mesh(args.phantom_mesh, args.phantom_size))
+        from breastmodel.phantom import Anatomy
+        from breastmodel.phantom.simulated import anatomy_mesh
+
+        mesh = split_interface(anatomy_mesh(Anatomy.small(), size_mm=args.phantom_size,
+                                            path=args.phantom_mesh))
         source = {"phantom_mesh": str(args.phantom_mesh)}
     result = {
         "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes},

@@ -121,6 +121,27 @@ def closest_on_triangles(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np
             np.where(inside[..., None], bary, best_b))
 
 
+def anatomy_mesh(anatomy: Anatomy, *, size_mm: float = 6.0, voxel_size: float = 1.0,
+                 path: str | Path | None = None, keep_gland: bool = False):
+    """The stress-free anatomy meshed by the meshing stage (``mechanics.mesh.Mesh``).
+
+    fTetWild meshes differ from run to run: with ``path`` the mesh is read from that .npz
+    when it exists, else meshed and saved there, so that runs compare on one mesh.
+    """
+    from mechanics.mesh import Mesh
+
+    if path is not None and Path(path).exists():
+        return Mesh.load_npz(path)
+    import meshing
+
+    mesh = meshing.mesh_labels(stress_free_labels(anatomy, voxel_size=voxel_size),
+                               size_mm=size_mm, keep_gland=keep_gland)
+    if path is not None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        mesh.save_npz(path)
+    return mesh
+
+
 def simulate_positions(
     anatomy: Anatomy,
     truth_model: TruthModel | None = None,
