@@ -178,7 +178,16 @@ class Sliding(_InterfaceContact):
     one contact point per slave node) or 1, 3, 7 quadrature points per slave triangle
     (default 3: Gauss-point-to-surface, which passes the non-matching patch test);
     ``search_candidates`` (int, 8); ``edge_extension`` (float >= 0, 1.0: how far the muscle
-    surface extends past its boundary edges, in heights of the edge triangle).
+    surface extends past its boundary edges, in heights of the edge triangle);
+    ``freeze_pairing_after`` (int, 6; 0: never): after that many residual evaluations in one
+    load step, each point keeps the muscle triangle it was last paired with until the step
+    ends. The faceted muscle surface makes the pairing, and with it the normal force, jump
+    when a point crosses a triangle edge; late in a step, points near edges flip back and
+    forth and Newton stalls (measured: 20k-tet meshed phantom, tilted, stalled at load 0.81
+    after 94 s; with the freeze, 13 iterations). The converged state is in equilibrium for
+    its pairing; measured there, 328 of 3822 points were paired with a neighbour of their
+    closest triangle, and their gaps to the two differed by at most 0.037 mm, the size of the
+    penalty gaps themselves (0.036 mm).
     """
 
     name = "sliding"
@@ -201,6 +210,7 @@ class Sliding(_InterfaceContact):
         self.k_search = int(opts.pop("search_candidates", 8))
         self.points = int(opts.pop("points", 3))
         self.edge_extension = float(opts.pop("edge_extension", 1.0))
+        self.freeze_after = int(opts.pop("freeze_pairing_after", 6))
         if opts:
             raise ValueError(f"effect 'sliding': unknown option(s) {sorted(opts)}")
         if self.method not in METHODS:
@@ -232,6 +242,7 @@ class Sliding(_InterfaceContact):
         self.anchor_bary = np.zeros((P, 3))
         self.anchor_normal = np.zeros((P, 3))
         self._begun = None  # (x, state before the update) of the last begin_step
+        self._calls, self._pairing = 0, None  # contribute calls in this step, last pairing
 
     def weights(self, X: np.ndarray) -> np.ndarray:
         """(P,) reference area of each contact point, mm^2."""
@@ -262,10 +273,20 @@ class Sliding(_InterfaceContact):
     # -- normal part -------------------------------------------------------------------
     def _normal(self, X, x, *, hessian=True):
         """Pairing, gap (with derivatives), normal force fN (P,) mN, weights w (P,) mm^2 and
-        ``on`` (P,) 1.0 for points over the muscle surface, 0.0 for released ones."""
+        ``on`` (P,) 1.0 for points over the muscle surface, 0.0 for released ones.
+
+        ``hessian`` (the residual and tangent of :meth:`contribute`): after
+        ``freeze_pairing_after`` such calls in one load step the pairing of the last call is
+        kept for the rest of the step (see the class docstring)."""
         xp = self.contact_points(x)
-        facet, _, _ = closest_facets(xp, x, self.master, k=self.k_search,
-                                     normals=self.point_normals(x))
+        if hessian and self._pairing is not None and self._calls >= self.freeze_after > 0:
+            facet = self._pairing
+        else:
+            facet, _, _ = closest_facets(xp, x, self.master, k=self.k_search,
+                                         normals=self.point_normals(x))
+        if hessian:
+            self._calls += 1
+            self._pairing = facet
         xm = x[self.master[facet]]
         nodes = np.concatenate([self.sconn, self.master[facet]], axis=1)
         g, dg, d2g = signed_gap(xp, xm, hessian=hessian)
@@ -334,6 +355,7 @@ class Sliding(_InterfaceContact):
         self.anchor_normal = facet_normals(x, self.master)[facet]
 
     def begin_step(self, X, x):
+        self._calls, self._pairing = 0, None
         if np.array_equal(x, X):  # first step of a new solve: forget the last solve's state
             self.reset()
         # A cut-back starts the step again from the same converged x: update from the state

@@ -477,3 +477,34 @@ def test_default_edge_extension_is_one_triangle_height():
     assert off.any() and (xp[~off, 0] > 10.0).any()
     with pytest.raises(ValueError, match="edge_extension"):
         build_model(mesh, materials(1.0, 1.0), {"sliding": {"edge_extension": -1.0}})
+
+
+@pytest.mark.parametrize("freeze", [0, 3])
+def test_pairing_is_frozen_late_in_a_step_and_renewed_by_the_next(freeze):
+    """After ``freeze_pairing_after`` evaluations in a load step the points keep their
+    muscle triangles, even when the breast side has moved on; the next step pairs afresh.
+    With 0 the pairing follows every evaluation."""
+    from mechanics.effects import EFFECTS
+    from mechanics.effects._contact import closest_facets
+
+    mesh = stack(((4, 4, 1), (4.0, 4.0, 1.0), (0, 0, 0)), ((3, 3, 1), (4.0, 4.0, 1.0), (0, 0, 1)))
+    eff = EFFECTS["sliding"](mesh, friction=0.0, freeze_pairing_after=freeze)
+    X = mesh.nodes
+    moved = X.copy()
+    upper = mesh.node_sets["upper"]
+    moved[upper, 0] += 1.5  # slide the breast side by more than a muscle triangle
+    eff.begin_step(X, X)
+    for _ in range(3):
+        eff.contribute(X, X, 1.0)
+    at_rest = eff._pairing.copy()
+    eff.contribute(X, moved, 1.0)
+    closest, _, _ = closest_facets(eff.contact_points(moved), moved, eff.master,
+                                   normals=eff.point_normals(moved))
+    assert not np.array_equal(closest, at_rest)
+    if freeze:
+        assert np.array_equal(eff._pairing, at_rest)
+    else:
+        assert np.array_equal(eff._pairing, closest)
+    eff.begin_step(X, moved)
+    eff.contribute(X, moved, 1.0)
+    assert np.array_equal(eff._pairing, closest)
