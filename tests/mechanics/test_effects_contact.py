@@ -479,32 +479,38 @@ def test_default_edge_extension_is_one_triangle_height():
         build_model(mesh, materials(1.0, 1.0), {"sliding": {"edge_extension": -1.0}})
 
 
-@pytest.mark.parametrize("freeze", [0, 3])
-def test_pairing_is_frozen_late_in_a_step_and_renewed_by_the_next(freeze):
-    """After ``freeze_pairing_after`` evaluations in a load step the points keep their
-    muscle triangles, even when the breast side has moved on; the next step pairs afresh.
-    With 0 the pairing follows every evaluation."""
+@pytest.mark.parametrize("hold", [False, True])
+def test_a_pairing_that_flips_back_across_a_crease_is_held_until_the_step_ends(hold):
+    """A point whose closest muscle triangle goes A -> B -> A across a crease within one
+    load step keeps B for the rest of the step (``hold_flipping``); flips between coplanar
+    triangles (a continuous force) and points that move on are paired afresh; the next step
+    pairs every point afresh."""
     from mechanics.effects import EFFECTS
-    from mechanics.effects._contact import closest_facets
 
     mesh = stack(((4, 4, 1), (4.0, 4.0, 1.0), (0, 0, 0)), ((3, 3, 1), (4.0, 4.0, 1.0), (0, 0, 1)))
-    eff = EFFECTS["sliding"](mesh, friction=0.0, freeze_pairing_after=freeze)
-    X = mesh.nodes
-    moved = X.copy()
-    upper = mesh.node_sets["upper"]
-    moved[upper, 0] += 1.5  # slide the breast side by more than a muscle triangle
+    X = mesh.nodes.copy()
+    lower_top = (np.arange(len(X)) < 50) & (np.abs(X[:, 2] - 1.0) < 1e-9)
+    X[lower_top, 2] += 0.2 * np.maximum(X[lower_top, 0] - 2.0, 0.0)  # an 11 degree crease
+    mesh = Mesh(X, mesh.tets, mesh.region, node_sets=mesh.node_sets, face_sets=mesh.face_sets)
+    eff = EFFECTS["sliding"](mesh, friction=0.0, hold_flipping=hold)
+    moved, far = X.copy(), X.copy()
+    moved[mesh.node_sets["upper"], 0] += 1.5  # more than a muscle triangle, over the crease
+    far[mesh.node_sets["upper"], 0] += 3.0
+
+    def pairing(x):
+        return eff._normal(X, x)[0][:, -3:]  # the muscle nodes each point is paired with
+
     eff.begin_step(X, X)
-    for _ in range(3):
-        eff.contribute(X, X, 1.0)
-    at_rest = eff._pairing.copy()
-    eff.contribute(X, moved, 1.0)
-    closest, _, _ = closest_facets(eff.contact_points(moved), moved, eff.master,
-                                   normals=eff.point_normals(moved))
-    assert not np.array_equal(closest, at_rest)
-    if freeze:
-        assert np.array_equal(eff._pairing, at_rest)
+    at_rest = pairing(X)
+    at_moved = pairing(moved)
+    back = pairing(X)  # where it was: every point that changed triangle flips back
+    changed = np.any(at_rest != at_moved, axis=1)
+    held = np.any(back != at_rest, axis=1)
+    if hold:
+        assert 0 < held.sum() < changed.sum()  # some flips cross the crease, some do not
+        assert np.array_equal(back[held], at_moved[held])
+        assert np.array_equal(pairing(far)[held], at_moved[held])
     else:
-        assert np.array_equal(eff._pairing, closest)
-    eff.begin_step(X, moved)
-    eff.contribute(X, moved, 1.0)
-    assert np.array_equal(eff._pairing, closest)
+        assert changed.any() and not held.any()
+    eff.begin_step(X, X)
+    assert np.array_equal(pairing(X), at_rest)
