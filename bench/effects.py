@@ -27,9 +27,8 @@ _HERE = Path(__file__).resolve().parent
 # directory tests/meshing/ would shadow the meshing package.
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.append(str(_HERE.parent / "tests"))
-from breastlike import breastlike_mesh  # noqa: E402
+from breastlike import bench_mesh  # noqa: E402
 
-from mechanics.effects._interface import split_interface  # noqa: E402
 from mechanics.model import build_model  # noqa: E402
 from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 
@@ -131,16 +130,7 @@ def main() -> int:
         PAPER["E_left"] = PAPER["E_right"] = args.breast
     PAPER["skin"], PAPER["fascia"], PAPER["friction"] = args.skin, args.fascia, args.friction
     PAPER["skin_lateral"] = args.skin_lateral
-    if args.phantom_mesh is None:
-        mesh = split_interface(breastlike_mesh(cells=cells))
-        source = {"cells": cells}
-    else:
-        from breastmodel.phantom import Anatomy
-        from breastmodel.phantom.simulated import anatomy_mesh
-
-        mesh = split_interface(anatomy_mesh(Anatomy.small(), size_mm=args.phantom_size,
-                                            path=args.phantom_mesh))
-        source = {"phantom_mesh": str(args.phantom_mesh)}
+    mesh, source = bench_mesh(cells, args.phantom_mesh, args.phantom_size)
     options = SolverOptions()
     result = {
         "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes,

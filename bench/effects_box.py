@@ -39,9 +39,8 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.append(str(_HERE.parent / "tests"))
 import numpy as np  # noqa: E402
-from breastlike import breastlike_mesh, paper_model  # noqa: E402
+from breastlike import bench_mesh, paper_model  # noqa: E402
 
-from mechanics.effects._interface import split_interface  # noqa: E402
 from mechanics.mesh import REGIONS  # noqa: E402
 from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 
@@ -125,16 +124,7 @@ def main() -> int:
     changes = json.loads(args.changes)
     options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks,
                             stagnate_after=args.stagnate_after)
-    if args.phantom_mesh is None:
-        mesh = split_interface(breastlike_mesh(cells=cells))
-        source = {"cells": cells}
-    else:
-        from breastmodel.phantom import Anatomy
-        from breastmodel.phantom.simulated import anatomy_mesh
-
-        mesh = split_interface(anatomy_mesh(Anatomy.small(), size_mm=args.phantom_size,
-                                            path=args.phantom_mesh))
-        source = {"phantom_mesh": str(args.phantom_mesh)}
+    mesh, source = bench_mesh(cells, args.phantom_mesh, args.phantom_size)
     result = {
         "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},

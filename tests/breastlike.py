@@ -37,3 +37,18 @@ def paper_model(mesh, E_breast, E_skin, E_fascia, position, **changes):
         else:
             effects[k] = v
     return build_model(mesh, mats, effects)
+
+
+def bench_mesh(cells, phantom_mesh=None, phantom_size: float = 4.3):
+    """The split mesh a benchmark runs on, and a dict that says which: the two-mound mesh of
+    ``cells``, or with ``phantom_mesh`` (a .npz path) the half-size phantom anatomy meshed
+    at ``phantom_size`` mm by the meshing stage (read from that file, written there first)."""
+    from mechanics.effects._interface import split_interface
+
+    if phantom_mesh is None:
+        return split_interface(breastlike_mesh(cells=cells)), {"cells": list(cells)}
+    from breastmodel.phantom import Anatomy
+    from breastmodel.phantom.simulated import anatomy_mesh
+
+    mesh = anatomy_mesh(Anatomy.small(), size_mm=phantom_size, path=phantom_mesh)
+    return split_interface(mesh), {"phantom_mesh": str(phantom_mesh)}

@@ -24,6 +24,21 @@ def nodal_areas(X: np.ndarray, tri: np.ndarray, nodes: np.ndarray) -> np.ndarray
     return w[nodes]
 
 
+def barycentric(q, a, b, c):
+    """Barycentric coordinates (u, v, w) of the projections of points q onto the planes of
+    triangles (a, b, c); arrays (..., 3) that broadcast together."""
+    v0, v1, v2 = b - a, c - a, q - a
+    d00 = np.einsum("...i,...i->...", v0, v0)
+    d01 = np.einsum("...i,...i->...", v0, v1)
+    d11 = np.einsum("...i,...i->...", v1, v1)
+    d20 = np.einsum("...i,...i->...", v2, v0)
+    d21 = np.einsum("...i,...i->...", v2, v1)
+    den = d00 * d11 - d01 * d01
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return 1.0 - v - w, v, w
+
+
 def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
                    normals: np.ndarray | None = None, min_cos: float = 0.5):
     """Closest triangle of a surface to each point.
@@ -55,16 +70,8 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
     cand = np.asarray(cand).reshape(len(p), k)
     a, b, c = xt[cand, 0], xt[cand, 1], xt[cand, 2]  # (S, k, 3)
     q = p[:, None, :]
-    v0, v1, v2 = b - a, c - a, q - a
-    d00 = np.einsum("ski,ski->sk", v0, v0)
-    d01 = np.einsum("ski,ski->sk", v0, v1)
-    d11 = np.einsum("ski,ski->sk", v1, v1)
-    d20 = np.einsum("ski,ski->sk", v2, v0)
-    d21 = np.einsum("ski,ski->sk", v2, v1)
-    den = d00 * d11 - d01 * d01
-    bv = (d11 * d20 - d01 * d21) / den
-    bw = (d00 * d21 - d01 * d20) / den
-    bu = 1.0 - bv - bw
+    v0, v1 = b - a, c - a
+    bu, bv, bw = barycentric(q, a, b, c)
     inside = (bu >= 0) & (bv >= 0) & (bw >= 0)
     proj = a + bv[..., None] * v0 + bw[..., None] * v1
     d_plane = np.where(inside, np.linalg.norm(q - proj, axis=-1), np.inf)
@@ -121,17 +128,7 @@ def past_boundary(p: np.ndarray, xa: np.ndarray, bedge: np.ndarray, *,
         surfaces by 0.1 of the facet size by default); > 0 keeps the boundary nodes of a
         node-to-surface contact, which lie on the edge, in contact through small slips
     """
-    a, b, c = xa[:, 0], xa[:, 1], xa[:, 2]
-    v0, v1, v2 = b - a, c - a, p - a
-    d00 = np.einsum("si,si->s", v0, v0)
-    d01 = np.einsum("si,si->s", v0, v1)
-    d11 = np.einsum("si,si->s", v1, v1)
-    d20 = np.einsum("si,si->s", v2, v0)
-    d21 = np.einsum("si,si->s", v2, v1)
-    den = d00 * d11 - d01 * d01
-    lv = (d11 * d20 - d01 * d21) / den
-    lw = (d00 * d21 - d01 * d20) / den
-    lam = np.stack([1.0 - lv - lw, lv, lw], axis=1)
+    lam = np.stack(barycentric(p, xa[:, 0], xa[:, 1], xa[:, 2]), axis=1)
     return np.any((lam < -tol) & bedge, axis=1).astype(float)
 
 
