@@ -290,7 +290,7 @@ class Sliding(_InterfaceContact):
         if hessian and self.hold_flipping:
             if self._held is None:
                 self._held = np.full(len(facet), -1)
-            if self._history is not None:
+            if self._history is not None and self._history[1] is not None:
                 prev1, prev2 = self._history
                 flip = (facet == prev2) & (facet != prev1) & (self._held < 0)
                 if flip.any():  # across a crease only: between coplanar triangles the
