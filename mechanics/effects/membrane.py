@@ -92,9 +92,11 @@ def _sym_outer(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return 0.5 * (ab + ab.transpose(0, 2, 1))
 
 
-def _relax(C: np.ndarray, c: np.ndarray, I1: np.ndarray, dI: np.ndarray, d2I: np.ndarray):
+def _relax(C: np.ndarray, c: np.ndarray, I1: np.ndarray, dI: np.ndarray,
+           d2I: np.ndarray | None):
     """Replace I1 and its C-derivatives by the tension-field values where the membrane is
-    wrinkled or slack (see the module docstring); taut triangles are returned unchanged."""
+    wrinkled or slack (see the module docstring); taut triangles are returned unchanged.
+    ``d2I`` None: no second derivatives (no tangent wanted)."""
     tr = C[:, 0, 0] + C[:, 1, 1]
     disc = np.sqrt(np.maximum(0.25 * (C[:, 0, 0] - C[:, 1, 1]) ** 2 + C[:, 0, 1] ** 2, 0.0))
     c1, c2 = 0.5 * tr + disc, 0.5 * tr - disc
@@ -105,8 +107,11 @@ def _relax(C: np.ndarray, c: np.ndarray, I1: np.ndarray, dI: np.ndarray, d2I: np
     wrinkled = ~taut & ~slack  # also collapsed triangles (c <= 0)
     if not np.any(slack | wrinkled):
         return I1, dI, d2I
-    I1, dI, d2I = I1.copy(), dI.copy(), d2I.copy()
-    I1[slack], dI[slack], d2I[slack] = 3.0, 0.0, 0.0
+    I1, dI = I1.copy(), dI.copy()
+    I1[slack], dI[slack] = 3.0, 0.0
+    if d2I is not None:
+        d2I = d2I.copy()
+        d2I[slack] = 0.0
     w = np.flatnonzero(wrinkled)
     if len(w):
         Cw, a1, a2 = C[w], c1[w], c2[w]
@@ -123,6 +128,8 @@ def _relax(C: np.ndarray, c: np.ndarray, I1: np.ndarray, dI: np.ndarray, d2I: np
         g = 1.0 - a1**-1.5  # dI1/dc1 of the uniaxial invariant c1 + 2 c1^(-1/2)
         I1[w] = a1 + 2.0 / np.sqrt(a1)
         dI[w] = g[:, None, None] * N11
+        if d2I is None:
+            return I1, dI, d2I
         # d2c1/dC2 = 2 M12 x M12 / (c1 - c2) (first-order eigenvalue perturbation)
         d2I[w] = (1.5 * a1**-2.5)[:, None, None, None, None] * np.einsum("tAB,tCD->tABCD",
                                                                            N11, N11) \
@@ -167,10 +174,10 @@ def membrane_energy_terms(x: np.ndarray, tri: np.ndarray, G: np.ndarray, A0: np.
         I1 = C[:, 0, 0] + C[:, 1, 1] + 1.0 / c
         eye = np.eye(2)
         dI = eye[None] - Ci / c[:, None, None]  # dI1/dC (symmetric)
-        # d2I1/dC dC, minor and major symmetric
-        d2I = (0.5 * (np.einsum("tAC,tBD->tABCD", Ci, Ci)
-                      + np.einsum("tAD,tBC->tABCD", Ci, Ci))
-               + np.einsum("tAB,tCD->tABCD", Ci, Ci)) / c[:, None, None, None, None]
+        # d2I1/dC dC, minor and major symmetric (only for the tangent)
+        d2I = None if not tangent else (
+            0.5 * (np.einsum("tAC,tBD->tABCD", Ci, Ci) + np.einsum("tAD,tBC->tABCD", Ci, Ci))
+            + np.einsum("tAB,tCD->tABCD", Ci, Ci)) / c[:, None, None, None, None]
     if relax:
         I1, dI, d2I = _relax(C, c, I1, dI, d2I)
     W, d1, d2 = _law_derivatives(I1, mu, law, Jm)
