@@ -64,15 +64,16 @@ def test_interface_is_shared_flat_and_oriented_from_muscle_to_breast(boxes_unifo
     y0 = -SIZE[1] / 2 + SPLIT
     n = triangle_normals(x, iface)
     area = triangle_areas(x, iface)
-    # Away from the rim (one element in from the box's sides) the patch is that plane: over
-    # 14 fTetWild runs, node deviation <= 0.99 mm, mean normal <= -0.9992, area within 2.9 %.
+    # Away from the rim (two elements in from the box's sides) the patch is that plane: over
+    # 6 fTetWild runs, node deviation <= 0.03 mm (one element in: up to 1.27 mm, the rim's
+    # staircase reaches that far in; an earlier bound there was flaky).
     c, lo, hi = x[iface].mean(axis=1), x.min(axis=0), x.max(axis=0)
-    inner = ((c[:, 0] > lo[0] + H) & (c[:, 0] < hi[0] - H)
-             & (c[:, 2] > lo[2] + H) & (c[:, 2] < hi[2] - H))
+    inner = ((c[:, 0] > lo[0] + 2 * H) & (c[:, 0] < hi[0] - 2 * H)
+             & (c[:, 2] > lo[2] + 2 * H) & (c[:, 2] < hi[2] - 2 * H))
     dev = np.abs(x[np.unique(iface[inner]), 1] - y0)
-    assert dev.max() < 0.25 * H
-    assert (area[inner] * n[inner, 1]).sum() / area[inner].sum() < -0.99
-    assert area[inner].sum() == pytest.approx((SIZE[0] - 2 * H) * (SIZE[2] - 2 * H), rel=0.05)
+    assert dev.max() < 0.1 * H
+    assert (area[inner] * n[inner, 1]).sum() / area[inner].sum() < -0.999
+    assert area[inner].sum() == pytest.approx((SIZE[0] - 4 * H) * (SIZE[2] - 4 * H), rel=0.1)
     # The rim is a staircase of about one element where the interface meets the skin (the
     # embedded patch stops short of the outer surface): there it deviated up to 5.3 mm, and
     # the whole patch's area exceeded the plane's by 6-10 % (a 2-element rim of 5 mm steps).
@@ -87,8 +88,14 @@ def test_skin_and_fixed_sets(boxes):
     x = mesh.nodes
     skin = mesh.face_sets["skin"]
     n, c = triangle_normals(x, skin), x[skin].mean(1)
-    # outward: away from the box centre; and all on the breast box (y < interface plane)
-    assert (np.einsum("ij,ij->i", n, c) > 0).mean() > 0.99
+    # outward: away from the breast tet each face bounds (every one); mostly away from the
+    # box centre too (the rim's staircase has faces in concave corners: 0.86 % of them in
+    # one of 11 runs); and all on the breast box (y < interface plane)
+    bf, owner, _, _ = tet_faces(mesh.tets)
+    tet_of = {tuple(sorted(f)): t for f, t in zip(bf.tolist(), owner.tolist(), strict=True)}
+    inside = x[mesh.tets[[tet_of[tuple(sorted(f))] for f in skin.tolist()]]].mean(axis=1)
+    assert (np.einsum("ij,ij->i", n, c - inside) > 0).all()
+    assert (np.einsum("ij,ij->i", n, c) > 0).mean() > 0.98
     assert c[:, 1].max() < -SIZE[1] / 2 + SPLIT + 0.5
     # the front (anterior) face is 60 x 50 mm less the rounded rim (normal tilted > 25 deg),
     # about a 1 mm strip along its 220 mm perimeter at this element size
