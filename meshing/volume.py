@@ -175,7 +175,7 @@ def _surfaces(tets, region):
     return bf, iface
 
 
-def _improve(nodes, tets, region, vu, fu, vb, fb, *, epsilon: float, passes: int = 3):
+def _improve(nodes, tets, region, vu, fu, vb, fb, *, epsilon: float, passes: int = 6):
     """Repeat :func:`_improve_once` while a tet is flatter than skewness 0.9 (a collapse
     frees nodes that the next relocation can move)."""
     for _ in range(passes):
