@@ -27,7 +27,7 @@ _HERE = Path(__file__).resolve().parent
 # directory tests/meshing/ would shadow the meshing package.
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.append(str(_HERE.parent / "tests"))
-from breastlike import bench_mesh  # noqa: E402
+from breastlike import add_mesh_arguments, bench_mesh  # noqa: E402
 
 from mechanics.model import build_model  # noqa: E402
 from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
@@ -114,12 +114,7 @@ def main() -> int:
     ap.add_argument("--fascia", type=float, default=PAPER["fascia"], help="fascia E, kPa")
     ap.add_argument("--friction", type=float, default=0.1, help="Coulomb coefficient k")
     ap.add_argument("--positions", default=",".join(GRAVITY), help="comma-separated positions")
-    ap.add_argument("--phantom-mesh", type=Path, default=None,
-                    help="an fTetWild mesh of the half-size phantom anatomy (curved chest "
-                         "wall) instead of the flat-slab mesh: a saved Mesh .npz, meshed at "
-                         "--phantom-size and written there first when missing")
-    ap.add_argument("--phantom-size", type=float, default=4.3,
-                    help="element size when meshing the phantom, mm (4.3: ~20k tets)")
+    add_mesh_arguments(ap, phantom_size=4.3)  # 4.3 mm: ~20k tets
     ap.add_argument("--skin-lateral", action="store_true",
                     help="hold the skin's lateral cut too (supports option skin_lateral): on "
                          "this flat slab nothing else holds the breast sideways")

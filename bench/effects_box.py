@@ -39,7 +39,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [str(_HERE.parent)] + [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 sys.path.append(str(_HERE.parent / "tests"))
 import numpy as np  # noqa: E402
-from breastlike import bench_mesh, paper_model  # noqa: E402
+from breastlike import add_mesh_arguments, bench_mesh, paper_model  # noqa: E402
 
 from mechanics.mesh import REGIONS  # noqa: E402
 from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
@@ -109,12 +109,7 @@ def main() -> int:
                     help="JSON: effect tables of the paper-like model to replace")
     ap.add_argument("--stagnate-after", type=int, default=SolverOptions.stagnate_after,
                     help="SolverOptions.stagnate_after (0: no early cut-back)")
-    ap.add_argument("--phantom-mesh", type=Path, default=None,
-                    help="run on an fTetWild mesh of the half-size phantom anatomy (curved "
-                         "chest wall) instead: a saved Mesh .npz, meshed and written there "
-                         "first when missing")
-    ap.add_argument("--phantom-size", type=float, default=8.0,
-                    help="element size when meshing the phantom, mm")
+    add_mesh_arguments(ap, phantom_size=8.0)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects_box.json"))
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))

@@ -39,6 +39,19 @@ def paper_model(mesh, E_breast, E_skin, E_fascia, position, **changes):
     return build_model(mesh, mats, effects)
 
 
+def add_mesh_arguments(ap, *, phantom_size: float) -> None:
+    """The benchmarks' ``--phantom-mesh`` and ``--phantom-size`` options (see
+    :func:`bench_mesh`)."""
+    from pathlib import Path
+
+    ap.add_argument("--phantom-mesh", type=Path, default=None,
+                    help="run on an fTetWild mesh of the half-size phantom anatomy (curved "
+                         "chest wall) instead of the flat slab: a saved Mesh .npz, meshed at "
+                         "--phantom-size and written there first when missing")
+    ap.add_argument("--phantom-size", type=float, default=phantom_size,
+                    help=f"element size when meshing the phantom, mm (default {phantom_size})")
+
+
 def bench_mesh(cells, phantom_mesh=None, phantom_size: float = 4.3):
     """The split mesh a benchmark runs on, and a dict that says which: the two-mound mesh of
     ``cells``, or with ``phantom_mesh`` (a .npz path) the half-size phantom anatomy meshed
