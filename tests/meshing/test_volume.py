@@ -194,3 +194,24 @@ def test_tissue_fragments_go_to_the_other_tissue():
     assert out[top] == REGIONS["breast_left"] and out[bottom] == REGIONS["muscle"]
     changed = np.flatnonzero(out != region)
     assert sorted(changed) == sorted([top, bottom])
+
+
+def test_tets_hanging_by_an_edge_or_a_vertex_are_not_the_main_body():
+    """A tet that meets the mesh at an edge, or at a vertex, can rotate about it; only the
+    face-connected body is kept (its tets are held rigidly by shared faces)."""
+    from zoo import box
+
+    from meshing.volume import _main_body
+
+    mesh = box(shape=(4, 4, 2), size=(4.0, 4.0, 2.0))
+    nodes, tets = mesh.nodes, mesh.tets
+    corner = int(np.argmax(nodes.sum(axis=1)))  # (4, 4, 2)
+    edge_mate = int(np.flatnonzero(np.all(nodes == [3.0, 4.0, 2.0], axis=1))[0])
+    n = len(nodes)
+    nodes = np.vstack([nodes, [[4.5, 4.5, 3.0], [3.5, 4.5, 3.5], [6.0, 6.0, 6.0],
+                               [7.0, 6.0, 6.0], [6.0, 7.0, 6.0]]])
+    on_edge = [corner, edge_mate, n, n + 1]
+    on_vertex = [corner, n + 2, n + 3, n + 4]
+    tets = np.vstack([tets, on_edge, on_vertex])
+    body = _main_body(tets)
+    assert np.flatnonzero(~body).tolist() == [len(tets) - 2, len(tets) - 1]
