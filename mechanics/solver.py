@@ -48,11 +48,11 @@ class SolverOptions:
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
         ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
-        and fell less than 10x over the last 3 iterations (no sign of
-        convergence; measured: friction solves leaving their first iterations' stick/slip
-        transients were cut back while falling 50x in 3 iterations); ``stagnate_after = 0``
-        turns the check off and leaves only ``max_newton`` (linearly converging solves, e.g.
-        friction)
+        and fell less than 10x over the last 3 iterations, and shows no other progress
+        (see ``_progressing``; measured: friction solves leaving their first iterations'
+        stick/slip transients were cut back while falling 50x in 3 iterations);
+        ``stagnate_after = 0`` turns the check off and leaves only ``max_newton`` (linearly
+        converging solves, e.g. friction)
     singular_shift : what to do when the tangent A is singular (its factorisation fails or
         its solve does not satisfy the system): solve the Newton correction with A + rho S,
         rho = min(1, relative residual), S the regularising stiffness that effects offer
@@ -473,6 +473,24 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
     return replace(state(True, last_ev), wall_time=time.perf_counter() - t_start)
 
 
+def _progressing(res: list[float]) -> bool:
+    """True when a Newton step's relative residuals show progress that the stagnation check
+    must not cut short: the last iteration halved the best residual so far, or the last
+    three each fell, by a quarter in all (a damped, line-searched approach to a large
+    deformation).
+
+    Measured on the 20k-tet phantom with every effect on: 45 deg tilted went 0.97 -> 0.13 at
+    iteration 8 and supine fell steadily from 2.3 to 0.91 over iterations 1-8; both were cut
+    back there and took 27-36 iterations in two load steps; left alone they converged at
+    iterations 15 and 18."""
+    last = res[-1]
+    if last <= 0.5 * min(res[:-1]):
+        return True
+    tail = res[-4:]
+    return len(tail) == 4 and all(b < a for a, b in zip(tail, tail[1:])) \
+        and last <= 0.75 * tail[0]
+
+
 def _newton(nw: _Newton, u, lam, ev, R, A, entry):
     """Newton iterations of one load step. Returns (ok, u, ev, reason)."""
     opt = nw.opt
@@ -492,11 +510,11 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
             return False, u, ev, "residual diverged"
         res = entry["residuals"]
         if opt.stagnate_after and it >= opt.stagnate_after \
-                and rel > 0.1 * res[max(it - 3, 0)] \
+                and rel > 0.1 * res[max(it - 3, 0)] and not _progressing(res) \
                 and (rel > opt.stagnate_above
                      or min(res[it - 4:]) > 0.5 * min(res[:max(it - 4, 1)])):
             # also below stagnate_above when the best residual has not halved in the last
-            # 5 iterations (friction states cycling: 20k-tet prone ran 20 iterations at 1e-4)
+            # 5 iterations (friction states cycling: 20k-tet prone ran 20 iterations at 1e-4).
             return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
         try:
             A_first = None
