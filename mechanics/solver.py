@@ -407,13 +407,20 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
         return State(uu, converged, float(lam), stress, J, tuple(steps),
                      time.perf_counter() - t_start, p.copy(), X.copy())
 
+    # Path points: loads where a path-dependent effect (friction) updates its history; a
+    # step never crosses one, so the solution does not depend on how the steps fell.
+    stops = sorted({float(t) for eff in model.effects for t in eff.path_points()
+                    if 0.0 < t < 1.0} | {1.0})
     while lam < 1.0 - 1e-12:
         dlam = min(dlam, 1.0 - lam)
         new_lam = 1.0 if lam + dlam > 1.0 - 1e-12 else lam + dlam
+        stop = next(t for t in stops if t > lam + 1e-12)
+        if new_lam > stop - 1e-12:
+            new_lam, dlam = stop, stop - lam  # a cut-back then halves the step taken
         step_no += 1
         x_conv = X + u.reshape(-1, 3)
         for eff in model.effects:
-            eff.begin_step(X, x_conv)
+            eff.begin_step(X, x_conv, lam)
         t_before, c_before = dict(nw.t), dict(nw.c)
         f_before, k_before, i_before = nw.n_factor, nw.krylov_used, nw.krylov_its
         entry = {"step": step_no, "load": new_lam, "newton": 0, "residuals": [],

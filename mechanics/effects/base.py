@@ -121,9 +121,15 @@ class Effect:
         """Return region -> material after this effect (e.g. Gent stiffening); never mutate."""
         return materials
 
-    def begin_step(self, X: np.ndarray, x: np.ndarray) -> None:
+    def begin_step(self, X: np.ndarray, x: np.ndarray, load: float | None = None) -> None:
         """Called at the start of each load step with the reference positions X and the last
-        converged positions x (N, 3) mm: update contact pairings, stick anchors, etc."""
+        converged positions x (N, 3) mm, reached at load factor ``load`` (None: unknown):
+        update contact pairings, stick anchors, etc."""
+
+    def path_points(self) -> tuple[float, ...]:
+        """Load factors in (0, 1) at which the solver must converge a step, for an effect
+        whose state follows the loading path (friction): its history is updated there."""
+        return ()
 
     def contribute(self, X: np.ndarray, x: np.ndarray, load: float) -> Contribution:
         """Residual and tangent at current positions x given reference positions X (N, 3) mm.

@@ -320,6 +320,34 @@ def test_two_mounds_tilted_slide_held_by_ligaments():
     assert lig[0] > 0.5 * W * g[0]  # the ligaments, not friction, hold most of it
 
 
+@pytest.mark.parametrize("path_steps", [1, 2])
+def test_friction_path_is_set_by_path_steps_not_by_the_solver_steps(path_steps):
+    """The tilted two-mound model with friction, solved in one load step and in five solver
+    steps (initial_steps 5): the friction history moves only at the path points k /
+    path_steps, which every solve converges, so both give one solution (to the Newton
+    tolerance); a different path gives another (0.13 mm from 4 path steps with 1, 0.06 with
+    2). Without held pairings: a pairing held across a crease until a solver step ends
+    leaves the converged state in equilibrium for that pairing, which moved it by up to
+    0.013 mm (1 path step) and 0.053 mm (2) between the two stepping schemes."""
+    g = (np.sqrt(0.5), np.sqrt(0.5), 0.0)
+    sliding = {"friction": 0.1, "path_steps": path_steps, "hold_flipping": False}
+    mesh, model = _mound_model(g, {"fascia": {"E": 120.0}, "ligaments": {"area": 10.0},
+                                   "sliding": sliding})
+    points = {k / path_steps for k in range(1, path_steps + 1)}
+    sols = []
+    for steps in (1, 5):
+        st = solve(model, options=SolverOptions(linear_solver="scipy", initial_steps=steps))
+        loads = {round(e["load"], 12) for e in st.log if e["converged"]}
+        assert points <= loads and len(loads) >= (5 if steps == 5 else len(points))
+        sols.append(st.u)
+    scale = np.abs(sols[0]).max()
+    assert np.abs(sols[1] - sols[0]).max() <= 1e-6 * scale
+    _, other = _mound_model(g, {"fascia": {"E": 120.0}, "ligaments": {"area": 10.0},
+                                "sliding": {**sliding, "path_steps": 3 - path_steps}})
+    u_other = solve(other, options=SolverOptions(linear_solver="scipy")).u
+    assert np.abs(u_other - sols[0]).max() > 1e-3 * scale
+
+
 @pytest.mark.parametrize("gy", [-1.0, 1.0])
 def test_two_mounds_prone_and_supine_slide_on_friction_alone(gy):
     """Skin, supports and sliding with friction 0.1 on the two-mound mesh (the diagnosis's
