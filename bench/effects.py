@@ -35,7 +35,7 @@ from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 GRAVITY = {"supine": (0.0, 1.0, 0.0), "tilted": (np.sqrt(0.5), np.sqrt(0.5), 0.0),
            "prone": (0.0, -1.0, 0.0)}
 PAPER = {"E_left": 0.2, "E_right": 0.3, "skin": 4.0, "fascia": 120.0, "friction": 0.1,
-         "skin_lateral": False}
+         "skin_lateral": False, "path_steps": 1}
 
 
 def effects_config(position: str) -> dict:
@@ -45,7 +45,7 @@ def effects_config(position: str) -> dict:
         "skin": {"E": PAPER["skin"]},
         "fascia": {"E": PAPER["fascia"]},
         "ligaments": {"E": 100.0},
-        "sliding": {"friction": PAPER["friction"]},
+        "sliding": {"friction": PAPER["friction"], "path_steps": PAPER["path_steps"]},
         "regions": {"E_left": PAPER["E_left"], "E_right": PAPER["E_right"], "gland": False},
     }
 
@@ -113,6 +113,8 @@ def main() -> int:
     ap.add_argument("--skin", type=float, default=PAPER["skin"], help="skin E, kPa")
     ap.add_argument("--fascia", type=float, default=PAPER["fascia"], help="fascia E, kPa")
     ap.add_argument("--friction", type=float, default=0.1, help="Coulomb coefficient k")
+    ap.add_argument("--path-steps", type=int, default=1,
+                    help="load steps of the friction path (sliding option path_steps)")
     ap.add_argument("--positions", default=",".join(GRAVITY), help="comma-separated positions")
     add_mesh_arguments(ap, phantom_size=4.3)  # 4.3 mm: ~20k tets
     ap.add_argument("--skin-lateral", action="store_true",
@@ -125,6 +127,7 @@ def main() -> int:
         PAPER["E_left"] = PAPER["E_right"] = args.breast
     PAPER["skin"], PAPER["fascia"], PAPER["friction"] = args.skin, args.fascia, args.friction
     PAPER["skin_lateral"] = args.skin_lateral
+    PAPER["path_steps"] = args.path_steps
     mesh, source = bench_mesh(cells, args.phantom_mesh, args.phantom_size)
     options = SolverOptions()
     result = {

@@ -7,6 +7,11 @@ Reported: wall time (cold: pattern + symbolic analysis included; warm: a second 
 same model, as in a fit), Newton iterations, time split, peak memory, max displacement, and
 SfePy (P1 total-Lagrangian Neo-Hookean + bulk penalty, ScipyDirect) on the same mesh.
 
+The full paper-like model (every effect on: skin, fascia, ligaments, sliding with friction,
+supports, regions) on a ~20k-tet phantom mesh is ``python bench/gravity.py --effects
+[bench/effects.py options]``, which runs ``bench/effects.py`` (time per position, Newton
+iterations per load step, the cost of each effect).
+
 Usage: ``python bench/gravity.py [--sizes 20k,150k] [--no-sfepy] [--E 1.0]
 [--initial-steps 1]``; writes ``bench/results/gravity.json`` (rows of solvers and sizes not
 run this time are kept). The 150k row in ``bench/results/gravity_150k.json`` is made with
@@ -182,6 +187,10 @@ def _spawn(kind: str, n: int, E: float, nu: float, linear_solver: str, timeout: 
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if "--effects" in argv:  # the paper-like model: bench/effects.py with the other options
+        argv.remove("--effects")
+        return subprocess.call([sys.executable, str(ROOT / "bench" / "effects.py"), *argv])
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="20k", help="comma list of 2k, 20k, 150k")
     ap.add_argument("--E", type=float, default=1.0, help="Young's modulus, kPa")
