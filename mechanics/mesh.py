@@ -138,3 +138,39 @@ def orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     neg = np.linalg.det(e) < 0
     tets[neg, 2], tets[neg, 3] = tets[neg, 3].copy(), tets[neg, 2].copy()
     return tets
+
+
+def face_components(tets: np.ndarray) -> np.ndarray:
+    """(M,) component label of each tet, tets joined when they share a face.
+
+    Face-connected tets form a rigid whole: each is held by the three nodes of a shared
+    face. Tets that meet the rest only at an edge or a vertex can rotate about it."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    tets = np.asarray(tets, np.int64)
+    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+    owner = np.repeat(np.arange(len(tets)), 4)
+    _, inv = np.unique(faces, axis=0, return_inverse=True)
+    order = np.argsort(inv.ravel(), kind="stable")
+    key = inv.ravel()[order]
+    same = np.flatnonzero(key[1:] == key[:-1])  # consecutive owners of one face
+    a, b = owner[order][same], owner[order][same + 1]
+    g = sp.coo_matrix((np.ones(len(a)), (a, b)), shape=(len(tets), len(tets)))
+    return connected_components(g, directed=False)[1]
+
+
+def hinged_tets(tets: np.ndarray, *, max_fraction: float = 0.01) -> np.ndarray:
+    """Indices of the tets in small face-connected groups (at most ``max_fraction`` of the
+    tets) that share a node with another group: groups hanging on the mesh by an edge or a
+    vertex, free to rotate (a singular tangent)."""
+    tets = np.asarray(tets, np.int64)
+    label = face_components(tets)
+    size = np.bincount(label)
+    n_groups = np.zeros(tets.max() + 1, np.int64)  # distinct groups touching each node
+    pairs = np.unique(np.stack([tets.ravel(), np.repeat(label, 4)], axis=1), axis=0)
+    np.add.at(n_groups, pairs[:, 0], 1)
+    shared = (n_groups[tets] > 1).any(axis=1)
+    small = size[label] <= max_fraction * len(tets)
+    return np.flatnonzero(shared & small)
+

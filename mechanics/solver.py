@@ -466,18 +466,33 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
             continue
         just_cut = True
         if lam == 0.0 and (entry["cutback"] or "").startswith("singular"):
-            raise SolverError(f"mechanics: {entry['cutback']} at the first load step",
-                              state(False, None))
+            raise SolverError(f"mechanics: {entry['cutback']} at the first load step"
+                              f"{_mesh_hint(model.mesh)}", state(False, None))
         cutbacks += 1
         dlam *= 0.5
         if dlam < opt.min_step or cutbacks > opt.max_cutbacks:
             st = state(False, last_ev)
             raise SolverError(
                 f"mechanics: Newton diverged at load {new_lam:.4g} after {cutbacks} cut-back(s) "
-                f"(last reason: {entry['cutback']}); last converged load {lam:.4g}",
+                f"(last reason: {entry['cutback']}); last converged load {lam:.4g}"
+                f"{_mesh_hint(model.mesh) if lam == 0.0 else ''}",
                 st,
             )
     return replace(state(True, last_ev), wall_time=time.perf_counter() - t_start)
+
+
+def _mesh_hint(mesh) -> str:
+    """Why a solve may fail from its very first load step, when the mesh shows it: tets that
+    hang on the rest by an edge or a vertex (a free rotation). Computed only on failure."""
+    from mechanics.mesh import hinged_tets
+
+    bad = hinged_tets(mesh.tets)
+    if len(bad) == 0:
+        return ""
+    shown = ", ".join(str(int(t)) for t in bad[:5]) + (", ..." if len(bad) > 5 else "")
+    return (f"; the mesh has {len(bad)} tet(s) that meet the rest only at an edge or a vertex "
+            f"(tets {shown}): they rotate freely; remove them or re-mesh (the meshing stage "
+            "keeps only the face-connected body)")
 
 
 def _progressing(res: list[float]) -> bool:

@@ -6,11 +6,9 @@ import logging
 import time
 
 import numpy as np
-import scipy.sparse as sp
 import SimpleITK as sitk
-from scipy.sparse.csgraph import connected_components
 
-from mechanics.mesh import REGIONS, Mesh
+from mechanics.mesh import REGIONS, Mesh, face_components
 from meshing import _occupancy, _tetwild
 from meshing.improve import collapse_short_edges, relocate_boundary_nodes, relocate_free_nodes
 from meshing.labels import Grid, TissueMasks, repaired, tissue_masks
@@ -93,17 +91,6 @@ def _clean_isolated(tets: np.ndarray, region: np.ndarray) -> np.ndarray:
     return out
 
 
-def _face_components(tets: np.ndarray) -> np.ndarray:
-    """(M,) component label of each tet, tets joined when they share a face.
-
-    Face-connected tets form a rigid whole: each one is held by the three nodes of a shared
-    face. Tets that meet only at an edge or a vertex can rotate about it (a mechanism)."""
-    _, _, _, pairs = tet_faces(tets)
-    nt = len(tets)
-    g = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(nt, nt))
-    return connected_components(g, directed=False)[1]
-
-
 def _main_body(tets: np.ndarray) -> np.ndarray:
     """(M,) bool: the tets of the largest face-connected component.
 
@@ -111,14 +98,14 @@ def _main_body(tets: np.ndarray) -> np.ndarray:
     hangs on the rest by an edge or a vertex: a zero-stiffness rotation that makes every
     Newton step singular (measured: 1 fTetWild mesh in 12 of the half-size phantom at 7 mm,
     a lone boundary tet on an edge; every solve of it stalled at the first load step)."""
-    label = _face_components(tets)
+    label = face_components(tets)
     return label == np.bincount(label).argmax()
 
 
 def _fragments(tets: np.ndarray, members: np.ndarray, min_fraction: float) -> np.ndarray:
     """Indices into ``members`` (tets of one tissue) of the face-connected groups that hold
     less than ``min_fraction`` of them."""
-    label = _face_components(tets[members])
+    label = face_components(tets[members])
     size = np.bincount(label)
     return np.flatnonzero(size[label] < min_fraction * len(members))
 

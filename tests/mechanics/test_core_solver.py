@@ -148,3 +148,26 @@ def test_stagnation_cutback_is_configurable():
     off = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10,
                                              stagnate_after=0))
     np.testing.assert_allclose(off.u, ref.u, atol=1e-8 * np.abs(ref.u).max())
+
+
+def test_a_tet_hanging_by_an_edge_is_named_when_the_first_step_fails():
+    """A tet that meets the mesh only at an edge rotates freely about it: the tangent is
+    singular and no load step converges. The failure names the tet (the meshing stage drops
+    such tets; a mesh from elsewhere may have them)."""
+    from mechanics.mesh import Mesh, hinged_tets, orient_tets
+
+    mesh = box(shape=(6, 6, 2), size=(30.0, 30.0, 10.0))
+    top = np.flatnonzero(mesh.nodes[:, 2] == 10.0)
+    a = int(top[np.lexsort(mesh.nodes[top].T)][0])  # a corner edge of the top face
+    b = int(np.flatnonzero(np.all(mesh.nodes == mesh.nodes[a] + [5.0, 0.0, 0.0], axis=1))[0])
+    nodes = np.vstack([mesh.nodes, [[2.5, -4.0, 14.0], [2.5, 3.0, 16.0]]])
+    n = len(mesh.nodes)
+    tets = orient_tets(nodes, np.vstack([mesh.tets, [a, b, n, n + 1]]))
+    hinged = Mesh(nodes, tets, np.ones(len(tets), np.int32), node_sets=dict(mesh.node_sets))
+    assert hinged_tets(hinged.tets).tolist() == [len(tets) - 1]
+    assert len(hinged_tets(mesh.tets)) == 0
+    model = build_model(hinged, NH, {"gravity": {"direction": (0.0, 1.0, 0.0)},
+                                     "fixed": {"node_set": "zmin"}})
+    with pytest.raises(SolverError, match=rf"1 tet\(s\) that meet the rest only at an edge "
+                                          rf"or a vertex \(tets {len(tets) - 1}\)"):
+        solve(model, options=SolverOptions(linear_solver="scipy", max_cutbacks=3))
