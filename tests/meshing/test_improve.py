@@ -85,3 +85,16 @@ def test_collapse_leaves_a_good_mesh_alone():
     pts, tets = _cube(n=2)
     new, kept = collapse_short_edges(pts, tets, [tet_faces(tets)[0]])
     assert np.array_equal(new, tets) and np.array_equal(kept, np.arange(len(tets)))
+
+
+def test_collapse_that_changes_no_other_tet_removes_the_flat_cap():
+    """A flat cap tet whose apex belongs to it alone, on a face that may not move (an
+    interface): the only admissible collapse merges the apex into a base node and changes no
+    other tet. It removes the cap (before, the quality check took the max of nothing and
+    raised)."""
+    from mechanics.mesh import orient_tets
+
+    nodes = np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10], [3.5, 3.5, 3.6]], float)
+    tets = orient_tets(nodes, np.array([[0, 1, 2, 3], [4, 1, 2, 3]]))
+    out, kept = collapse_short_edges(nodes, tets, [tet_faces(tets)[0], np.array([[1, 2, 3]])])
+    assert kept.tolist() == [0] and np.array_equal(out, tets[:1])
