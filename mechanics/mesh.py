@@ -173,4 +173,3 @@ def hinged_tets(tets: np.ndarray, *, max_fraction: float = 0.01) -> np.ndarray:
     shared = (n_groups[tets] > 1).any(axis=1)
     small = size[label] <= max_fraction * len(tets)
     return np.flatnonzero(shared & small)
-
