@@ -86,6 +86,7 @@ class _Handle:
         self.ia = self.ja = None
         self.a = None
         self.n = 0
+        self.threads = 0  # MKL threads of the current analysis (0: MKL's default)
 
     def call(self, phase: int, b: np.ndarray | None = None) -> np.ndarray | None:
         n = self.n
@@ -121,12 +122,20 @@ class _Handle:
             self.n = A.shape[0]
             self.ia = A.indptr.astype(np.int32)
             self.ja = A.indices.astype(np.int32)
+            self.threads = _pardiso_threads()
             try:
-                self.call(11)
+                with _mkl_threads(self.lib, self.threads):
+                    self.call(11)
             except SingularSystem:
                 self.ia = self.ja = None
                 raise
-        self.call(22)
+        with _mkl_threads(self.lib, self.threads):
+            self.call(22)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Phase 33 (forward and backward substitution) with the analysis's threads."""
+        with _mkl_threads(self.lib, self.threads):
+            return self.call(33, b)
 
     def release(self) -> None:
         if self.ia is not None and self.a is not None:
@@ -212,14 +221,12 @@ class PardisoSolver:
 
     def _factor(self, precision: str) -> None:
         h = self._handle(self._mtype, precision)
-        with _mkl_threads(h.lib):
-            h.factorize(self._A)
+        h.factorize(self._A)
         self._h = h
 
     def precondition(self, b: np.ndarray) -> np.ndarray:
         """One solve with the factor as it is (no refinement): a preconditioner."""
-        with _mkl_threads(self._h.lib):
-            return self._h.call(33, b).astype(np.float64)
+        return self._h.solve(b).astype(np.float64)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Solution of A x = b, refined in double precision to a relative residual of
@@ -278,14 +285,21 @@ def _pardiso_threads() -> int:
 
 
 class _mkl_threads:
-    def __init__(self, lib):
+    """MKL's thread-local thread count set to ``n`` (> 0) inside the block.
+
+    One PARDISO analysis keeps one count for all its phases (``_Handle.threads``): the count
+    follows the load average, and a numerical factorisation with another count than its
+    analysis crashes MKL (reproduced: analysis on 2 threads, phase 22 on 1, a segmentation
+    fault; a CI test run died in phase 22 while the load average moved)."""
+
+    def __init__(self, lib, n: int):
         self.fn = getattr(lib, "MKL_Set_Num_Threads_Local", None)
+        self.n = int(n)
         self.prev = None
 
     def __enter__(self):
-        n = _pardiso_threads() if self.fn is not None else 0
-        if n > 0:
-            self.prev = self.fn(ctypes.c_int(n))
+        if self.fn is not None and self.n > 0:
+            self.prev = self.fn(ctypes.c_int(self.n))
 
     def __exit__(self, *exc):
         if self.prev is not None:

@@ -83,3 +83,45 @@ def test_pardiso_falls_back_to_double_precision_when_refinement_stalls():
                                             + np.linalg.norm(b))
     assert backward <= 1e-14
     assert lin.fallbacks == 1 and lin.precision == "double"
+
+
+def test_pardiso_keeps_the_thread_count_of_its_analysis(tmp_path):
+    """The count of MKL threads follows the load average. A factorisation that reuses an
+    analysis must keep the analysis's count: MKL crashes otherwise (phase 22 on 1 thread
+    after an analysis on 2: a segmentation fault). Run in a child process, which the count
+    changing between calls would kill."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    pytest.importorskip("pypardiso")
+    root = Path(__file__).resolve().parents[2]
+    script = tmp_path / "alternate.py"
+    script.write_text(f"""
+import sys
+sys.path[:0] = [{str(root)!r}, {str(root / "tests")!r}, {str(Path(__file__).parent)!r}]
+import numpy as np
+import mechanics.linear_solvers as L
+from test_core_linear_solvers import _saddle
+
+U = _saddle(10)[0]
+mode = [2]
+L._pardiso_threads = lambda: mode[0]  # what the load average would give now
+s = L.PardisoSolver()
+b = np.ones(U.shape[0])
+for i in range(10):
+    s._handle(-2, "single").ia = None  # a new analysis, then a factorisation reusing it
+    mode[0] = 2
+    s.factorize(U)
+    mode[0] = 1  # the load rose
+    s.factorize(U * (1.0 + 0.01 * i))
+    x = s.solve(b)
+    assert s._h.threads == 2
+    r = L.full_from_upper(U * (1.0 + 0.01 * i)) @ x - b
+    assert np.linalg.norm(r) <= 1e-8 * np.linalg.norm(b)
+print("ok")
+""")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
+    assert done.stdout.strip().endswith("ok")
