@@ -181,7 +181,7 @@ class Sliding(_InterfaceContact):
     (default 3: Gauss-point-to-surface, which passes the non-matching patch test);
     ``search_candidates`` (int, 8); ``edge_extension`` (float >= 0, 1.0: how far the muscle
     surface extends past its boundary edges, in heights of the edge triangle);
-    ``hold_flipping`` (bool, True): a point whose pairing flips back, within one load step,
+    ``hold_flipping`` (bool, True): a point whose pairing flips back, within one solver step,
     to the muscle triangle it had two evaluations before, across a crease (normals more than
     0.5 degree apart), keeps its current triangle until the step ends. The faceted muscle
     surface makes the normal force jump when a point crosses a creased triangle edge (across
@@ -192,7 +192,7 @@ class Sliding(_InterfaceContact):
     instead made converged states depend on the path, and a fit could no longer reproduce
     its own synthetic measurements); ``path_steps`` (int, 1): the loading path of the
     friction history, see below. The converged state is in equilibrium for its
-    pairing; in that tilted solve (now 36 iterations) 3 of 3822 points ended held, and their
+    pairing; in that tilted solve (36 iterations at the time) 3 of 3822 points ended held, and their
     gaps to the held and to the closest triangle differed by at most 0.041 mm, the size of
     the penalty gaps themselves (up to 0.061 mm).
 
