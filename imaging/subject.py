@@ -5,6 +5,8 @@ Layout::
     subject.toml      subject id, reference position, one table per position
     <volumes>         one 3-D volume per position (NIfTI/NRRD/MHA file or DICOM folder)
     fiducials.csv     optional: position,label,x,y,z (physical mm, that position's image frame)
+                      (or 3D Slicer markups: fiducials.mrk.json, <position>_fiducials.mrk.json;
+                      see :mod:`imaging.markups`)
     landmarks.csv     optional: internal anatomical landmarks, same columns
 
 ``subject.toml``::
@@ -171,6 +173,8 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
                 raise SubjectError(f"subject {root} position {pos.name!r}: {exc}") from None
 
     fiducials = _optional_points(root / "fiducials.csv", positions)
+    if not fiducials:
+        fiducials = _markups_fiducials(root, positions)
     landmarks = _optional_points(root / "landmarks.csv", positions)
     return Subject(
         id=sid,
@@ -220,6 +224,16 @@ def _read_position(root: Path, toml_path: Path, name: str, entry: Any) -> Positi
             raise SubjectError(f"{where}: 'tilt_deg' must be a number, got {tilt!r}")
         tilt = float(tilt)
     return Position(name, path, gravity, notes, tilt)
+
+
+def _markups_fiducials(root: Path, positions: dict) -> dict[str, dict[str, np.ndarray]]:
+    """Fiducials from 3D Slicer markups when the folder has no ``fiducials.csv``."""
+    from imaging.markups import MarkupsError, read_fiducial_markups
+
+    try:
+        return read_fiducial_markups(root, list(positions))
+    except MarkupsError as exc:
+        raise SubjectError(str(exc)) from None
 
 
 def _optional_points(path: Path, positions: dict) -> dict[str, dict[str, np.ndarray]]:
