@@ -3,7 +3,8 @@
 Written point data: ``displacement`` (N, 3) mm, ``pressure`` (N,) kPa ("anp"), each node set
 as a 0/1 ``uint8`` array; cell data: ``region``, ``stress`` (M, 9) Cauchy kPa (row-major),
 ``von_mises`` kPa, ``J``, ``stretch`` (M, 3) principal stretches (descending). Points are the
-reference positions: "warp by vector" with ``displacement`` shows the deformed shape.
+reference positions ("warp by vector" with ``displacement`` shows the deformed shape), or the
+deformed positions with ``deformed=True`` (points minus ``displacement`` give the reference).
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ def von_mises(stress: np.ndarray) -> np.ndarray:
     return np.sqrt(1.5 * np.einsum("mij,mij->m", dev, dev))
 
 
-def write_vtu(path, mesh: Mesh, state=None, *, X: np.ndarray | None = None) -> None:
+def write_vtu(path, mesh: Mesh, state=None, *, X: np.ndarray | None = None,
+              deformed: bool = False) -> None:
     """Write ``mesh`` (and ``state``'s fields) to a VTU file.
 
     Parameters
@@ -42,6 +44,7 @@ def write_vtu(path, mesh: Mesh, state=None, *, X: np.ndarray | None = None) -> N
     mesh : Mesh
     state : State or None
     X : (N, 3) reference positions in mm (default ``state.X`` or ``mesh.nodes``)
+    deformed : write the deformed positions X + u as the points (needs ``state``)
     """
     import meshio
 
@@ -60,7 +63,8 @@ def write_vtu(path, mesh: Mesh, state=None, *, X: np.ndarray | None = None) -> N
         cell_data["von_mises"] = [von_mises(stress)]
         cell_data["J"] = [np.asarray(state.J, float)]
         cell_data["stretch"] = [principal_stretches(X, X + state.u, mesh.tets)]
-    out = meshio.Mesh(X, [("tetra", np.asarray(mesh.tets))], point_data=point_data,
+    points = X + np.asarray(state.u, float) if deformed and state is not None else X
+    out = meshio.Mesh(points, [("tetra", np.asarray(mesh.tets))], point_data=point_data,
                       cell_data=cell_data)
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")

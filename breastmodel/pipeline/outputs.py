@@ -1,57 +1,306 @@
-"""The run's outputs: metrics.json, predicted surfaces (PLY), params.json and report.html."""
+"""The run's outputs, in the formats the tools users look with open directly.
+
+``DIR/`` after ``breastmodel run``:
+
+===============================================  ==============================================
+``metrics.json``, ``params.json``                 per-position distances, the parameters used
+``report.html``                                   the whole run on one page (browser)
+``run.vtm``                                       ParaView: every position's blocks below
+``<position>.vtu``                                deformed tet mesh (points = predicted node
+                                                  positions, mm): point data ``displacement``
+                                                  (from the stress-free geometry), ``pressure``,
+                                                  node sets; cell data ``region``, ``stress``
+                                                  (Cauchy, kPa), ``von_mises``, ``J``,
+                                                  ``stretch``
+``<position>_skin.vtp``                           predicted skin: ``signed_error_mm`` (to the
+                                                  measured skin, + outside), ``region``,
+                                                  ``displacement``
+``<position>_measured_skin.vtp``                  measured skin (reference frame)
+``<position>_predicted.ply``                      predicted skin, plain geometry
+``<position>_in_reference.nii.gz``                3D Slicer / ITK-SNAP: the position's volume
+``<position>_labels_in_reference.nii.gz``         and label map resampled into the reference
+                                                  frame (the reference's own for it)
+``<position>.tfm``                                ITK rigid transform, reference -> position
+                                                  image (identity for the reference)
+``labels.ctbl``, ``labels_itksnap.txt``           colour tables of the label codes (Slicer,
+                                                  ITK-SNAP)
+``<position>_fiducials.mrk.json``,                detected fiducials in the reference frame
+``fiducials_in_reference.csv``                    (Slicer markups, LPS; CSV as the input's)
+===============================================  ==============================================
+
+All of it is assembled from finished stages under ``DIR/cache`` (cheap; redone on every
+run); every file is written atomically.
+"""
 
 from __future__ import annotations
 
 import json
+import logging
+import os
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["write_outputs"]
+log = logging.getLogger("breastmodel.pipeline")
+
+__all__ = ["LABEL_TABLE", "export_images", "write_colour_tables", "write_outputs",
+           "write_position_meshes", "write_vtm"]
 
 _SUMMARY_KEYS = ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm", "median_mm",
                  "mean_pred_to_meas_mm", "mean_meas_to_pred_mm", "n_pred", "n_meas",
                  "converged", "load_reached", "max_displacement_mm", "error")
 
+#: label code -> (name, RGB 0-255), as drawn by :mod:`imaging.views`
+LABEL_TABLE = {0: ("background", (0, 0, 0)), 1: ("breast", (255, 127, 14)),
+               2: ("muscle", (214, 39, 40)), 3: ("gland", (44, 160, 44))}
+
+
+def _copy(src: Path, dst: Path) -> None:
+    tmp = dst.with_name(f".{dst.name}.tmp")
+    shutil.copyfile(src, tmp)
+    os.replace(tmp, dst)
+
+
+def write_position_meshes(out: Path, problem, position: str,
+                          predicted: Mapping[str, np.ndarray]) -> dict[str, str]:
+    """Write ``<position>.vtu``, ``<position>_skin.vtp`` and ``<position>_measured_skin.vtp``.
+
+    Parameters
+    ----------
+    out : output folder
+    problem : :class:`breastmodel.pipeline.problem.Problem`
+    position : position name
+    predicted : the predict stage's arrays: ``x`` (N, 3) mm predicted nodes, ``X`` (N, 3)
+        mm stress-free nodes, ``stress`` (M, 9) kPa, ``J`` (M,), ``pressure`` (N,) kPa,
+        ``signed_error`` (n_skin,) mm, ``skin_nodes`` (n_skin,)
+
+    Returns
+    -------
+    dict
+        ``{"mesh", "skin", "measured_skin"}`` file names.
+    """
+    from breastmodel.pipeline.problem import mesh_of, skin_node_regions
+    from mechanics.export import write_vtu
+    from mechanics.state import State
+    from meshing.export import write_vtp
+
+    x = np.asarray(predicted["x"], float)
+    mesh = mesh_of(problem, len(x))
+    X = np.asarray(predicted["X"], float) if "X" in predicted else np.array(mesh.nodes, float)
+    if "stress" in predicted:
+        stress = np.asarray(predicted["stress"], float).reshape(-1, 3, 3)
+        J = np.asarray(predicted["J"], float)
+    else:  # a prediction cached before stresses were stored
+        log.warning("outputs: %s: the cached prediction has no stresses; %s.vtu carries NaN "
+                    "stress (rerun with a fresh cache to fill them)", position, position)
+        stress = np.full((mesh.n_tets, 3, 3), np.nan)
+        J = np.full(mesh.n_tets, np.nan)
+    pressure = predicted.get("pressure")
+    state = State(x - X, True, 1.0, stress, J, pressure=pressure, X=X)
+    names = {"mesh": f"{position}.vtu", "skin": f"{position}_skin.vtp",
+             "measured_skin": f"{position}_measured_skin.vtp"}
+    write_vtu(out / names["mesh"], mesh, state, deformed=True)
+
+    nodes = np.asarray(predicted["skin_nodes"])
+    faces = np.asarray(mesh.face_sets["skin"])
+    remap = np.full(len(x), -1, np.int64)
+    remap[nodes] = np.arange(len(nodes))
+    write_vtp(x[nodes], remap[faces], out / names["skin"], point_data={
+        "signed_error_mm": np.asarray(predicted["signed_error"], float),
+        "region": skin_node_regions(mesh)[nodes],
+        "displacement": (x - X)[nodes]})
+    mv, mf = problem.skins[position]
+    write_vtp(mv, mf, out / names["measured_skin"])
+    return names
+
+
+def write_vtm(path: Path, blocks: Mapping[str, Mapping[str, str]]) -> Path:
+    """A VTK multiblock file (``.vtm``) that opens every listed file in ParaView at once.
+
+    Parameters
+    ----------
+    path : output file
+    blocks : block name -> dataset name -> file name (relative to ``path``'s folder)
+    """
+    from xml.sax.saxutils import quoteattr
+
+    from breastmodel.config import write_atomic
+
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="vtkMultiBlockDataSet" version="1.0" byte_order="LittleEndian" '
+             'header_type="UInt64">', "  <vtkMultiBlockDataSet>"]
+    for i, (name, files) in enumerate(blocks.items()):
+        lines.append(f"    <Block index=\"{i}\" name={quoteattr(name)}>")
+        for j, (label, file) in enumerate(files.items()):
+            lines.append(f"      <DataSet index=\"{j}\" name={quoteattr(label)} "
+                         f"file={quoteattr(file)}/>")
+        lines.append("    </Block>")
+    lines += ["  </vtkMultiBlockDataSet>", "</VTKFile>"]
+    write_atomic(path, "\n".join(lines) + "\n")
+    return path
+
+
+def write_colour_tables(out: Path) -> list[str]:
+    """``labels.ctbl`` (3D Slicer colour table) and ``labels_itksnap.txt`` (ITK-SNAP label
+    description) for the label codes of :data:`LABEL_TABLE`; returns the file names."""
+    from breastmodel.config import write_atomic
+
+    ctbl = ["# 3D Slicer colour table of breastmodel label maps",
+            "# index name R G B A (0-255)"]
+    ctbl += [f"{c} {n} {r} {g} {b} {0 if c == 0 else 255}"
+             for c, (n, (r, g, b)) in LABEL_TABLE.items()]
+    write_atomic(out / "labels.ctbl", "\n".join(ctbl) + "\n")
+    snap = ["################################################",
+            "# ITK-SnAP Label Description File",
+            "# IDX   -R-  -G-  -B-  -A--  VIS MSH  LABEL",
+            "################################################"]
+    snap += [f"{c:5d} {r:5d} {g:4d} {b:4d} {0 if c == 0 else 1:8d} {int(c > 0):2d} "
+             f"{int(c > 0):2d}    \"{'Clear Label' if c == 0 else n}\""
+             for c, (n, (r, g, b)) in LABEL_TABLE.items()]
+    write_atomic(out / "labels_itksnap.txt", "\n".join(snap) + "\n")
+    return ["labels.ctbl", "labels_itksnap.txt"]
+
+
+def export_images(out: Path, register_dir: Path, reference: str,
+                  positions) -> dict[str, Any]:
+    """Copy the registered volumes, label maps and transforms out of the register stage,
+    with colour tables, and write the detected fiducials in the reference frame.
+
+    Parameters
+    ----------
+    out : output folder
+    register_dir : the register stage's folder (see ``breastmodel register``)
+    reference : reference position
+    positions : every position name
+
+    Returns
+    -------
+    dict
+        ``{"volumes": {position: file}, "labels": {...}, "transforms": {...},
+        "fiducials": {position: {label: (3,) mm}}}`` (reference frame, LPS).
+    """
+    import SimpleITK as sitk
+
+    from imaging.markups import write_markups
+    from registration.transforms import read_transform, transform_points
+
+    reg = json.loads((register_dir / "registration.json").read_text())
+    files: dict[str, Any] = {"volumes": {}, "labels": {}, "transforms": {}, "fiducials": {}}
+    for pos in positions:
+        ref = pos == reference
+        vol = f"{pos}_in_reference.nii.gz"
+        lab = f"{pos}_labels_in_reference.nii.gz"
+        _copy(register_dir / ("reference.nii.gz" if ref else vol), out / vol)
+        _copy(register_dir / ("reference_labels.nii.gz" if ref else lab), out / lab)
+        files["volumes"][pos], files["labels"][pos] = vol, lab
+        tfm = out / f"{pos}.tfm"
+        if ref:
+            tmp = tfm.with_name(f".{tfm.name}.tmp.tfm")
+            sitk.WriteTransform(sitk.Euler3DTransform(), str(tmp))
+            os.replace(tmp, tfm)
+            pts = reg.get("fiducials_reference_mm", {})
+        else:
+            _copy(register_dir / f"{pos}.tfm", tfm)
+            own = reg.get("positions", {}).get(pos, {}).get("fiducials_mm", {})
+            pts = {}
+            if own:
+                back = transform_points(read_transform(tfm).GetInverse(),
+                                        np.array(list(own.values()), float))
+                pts = dict(zip(own, back.tolist()))
+        files["transforms"][pos] = tfm.name
+        files["fiducials"][pos] = {k: np.asarray(v, float) for k, v in pts.items()}
+    for pos, pts in files["fiducials"].items():
+        if pts:
+            write_markups(out / f"{pos}_fiducials.mrk.json", {pos: pts})
+    rows = ["position,label,x,y,z"] + [
+        f"{pos},{k},{v[0]:.4f},{v[1]:.4f},{v[2]:.4f}"
+        for pos, pts in files["fiducials"].items() for k, v in pts.items()]
+    from breastmodel.config import write_atomic
+
+    write_atomic(out / "fiducials_in_reference.csv", "\n".join(rows) + "\n")
+    files["colour_tables"] = write_colour_tables(out)
+    files["registration"] = reg
+    return files
+
 
 def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping[str, Path],
                   params: Mapping[str, Any], fit_info: Mapping[str, Any] | None, *,
-                  subject_id: str) -> dict:
-    """Assemble the run's outputs from finished stages (cheap; redone on every run).
+                  subject_id: str, register_dir: Path | None = None,
+                  segment_dirs: Mapping[str, Path] | None = None,
+                  volumes: Mapping[str, Path] | None = None,
+                  config: Mapping[str, Any] | None = None) -> dict:
+    """Assemble the run's outputs from finished stages (see the module notes).
 
-    Writes ``out/metrics.json`` ({"positions": {position: {mhd_mm, hausdorff_mm, rmse_mm,
-    p95_mm, ..., "regions": {...}, "landmarks": {...}}}, "stress_free": {...}}),
-    ``out/<position>_predicted.ply`` (reference frame, mm), ``out/params.json`` and
-    ``out/report.html``. Returns the metrics dict.
+    Parameters
+    ----------
+    out : output folder
+    problem_dir, sf_dir : the problem and stress-free stage folders
+    pred_dirs : position -> predict stage folder
+    params : the parameters used (``params.json``)
+    fit_info : the fit stage's result, or None
+    subject_id : subject name for the report
+    register_dir : the register stage folder (volumes, labels, transforms; None for a
+        given problem folder: no images are exported)
+    segment_dirs : position -> segment stage folder (label maps on each position's grid)
+    volumes : position -> the subject's input volume (segmentation QA in the report)
+    config : the resolved run config (shown in the report)
+
+    Returns
+    -------
+    dict
+        The metrics written to ``metrics.json`` ({"positions": {position: {mhd_mm, ...,
+        "regions", "landmarks"}}, "stress_free": {...}}).
     """
     from breastmodel.config import write_json
-    from breastmodel.pipeline.problem import load_problem, mesh_of
+    from breastmodel.pipeline.problem import load_problem
     from breastmodel.pipeline.report import write_report
     from meshing.export import write_ply
 
+    out = Path(out)
     problem = load_problem(problem_dir)
     sf = json.loads((sf_dir / "stress_free.json").read_text())
     metrics: dict[str, Any] = {"subject": subject_id, "reference": problem.reference,
                                "units": "mm", "positions": {},
                                "stress_free": {k: v for k, v in sf.items() if k != "history"}}
-    pictures = {}
+    pictures, blocks = {}, {}
     for pos, d in pred_dirs.items():
         m = json.loads((d / "metrics.json").read_text())
+        with np.load(d / "predicted.npz") as z:
+            pred = {k: z[k] for k in z.files}
+        err = np.asarray(pred["signed_error"], float)
         metrics["positions"][pos] = {**{k: m[k] for k in _SUMMARY_KEYS if k in m},
                                      "regions": m.get("regions", {}),
                                      **({"landmarks": m["landmarks"]} if "landmarks" in m
                                         else {})}
-        with np.load(d / "predicted.npz") as z:
-            x, err, nodes = z["x"], z["signed_error"], z["skin_nodes"]
+        names = write_position_meshes(out, problem, pos, pred)
+        blocks[pos] = {"mesh": names["mesh"], "predicted skin": names["skin"],
+                       "measured skin": names["measured_skin"]}
+        from breastmodel.pipeline.problem import mesh_of
+
+        x, nodes = pred["x"], pred["skin_nodes"]
         faces = np.asarray(mesh_of(problem, len(x)).face_sets["skin"])
         remap = np.full(len(x), -1, np.int64)
         remap[nodes] = np.arange(len(nodes))
         write_ply(x[nodes], remap[faces], out / f"{pos}_predicted.ply")
         pictures[pos] = (x[nodes], remap[faces], err, problem.skins[pos])
+    write_vtm(out / "run.vtm", blocks)
+    images = None
+    if register_dir is not None:
+        positions = list(problem.gravity)
+        images = export_images(out, Path(register_dir), problem.reference, positions)
+        images["segment_dirs"] = dict(segment_dirs or {})
+        images["input_volumes"] = dict(volumes or {})
+        images["reference"] = problem.reference
+        images["out"] = out
+    metrics["files"] = {"paraview": "run.vtm", "positions": blocks,
+                        **({k: images[k] for k in ("volumes", "labels", "transforms",
+                                                   "colour_tables")} if images else {})}
     write_json(out / "metrics.json", metrics)
     write_json(out / "params.json", params)
     write_report(out / "report.html", metrics, params, pictures, fit_info, sf,
-                 subject_id=subject_id)
+                 subject_id=subject_id, images=images, config=config,
+                 provenance_path=out / "provenance.json")
     return metrics

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["write_report"]
+__all__ = ["common_error_limit", "parameter_units", "write_report"]
 
 
 def _png(fig) -> str:
@@ -25,27 +25,27 @@ def _png(fig) -> str:
 
 
 def _error_figure(name: str, v: np.ndarray, f: np.ndarray, err: np.ndarray,
-                  measured: tuple[np.ndarray, np.ndarray]):
+                  measured: tuple[np.ndarray, np.ndarray], lim: float):
     """Anterior (x-z) and lateral (y-z) views of the predicted skin coloured by the signed
-    node-to-surface error, with the measured skin's vertices in grey."""
+    node-to-surface error on the colour scale [-lim, lim] mm (one for every position), with
+    the measured skin's vertices in grey."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.tri import Triangulation
 
-    lim = float(np.nanpercentile(np.abs(err), 98)) if len(err) else 1.0
-    lim = lim if lim > 0 else 1.0
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
     mv = measured[0]
-    for ax, (i, j, title) in zip(axes, [(0, 2, "anterior view (x: patient left, z: superior)"),
-                                        (1, 2, "lateral view (y: posterior, z: superior)")]):
+    for ax, (i, j, title) in zip(axes, [(0, 2, "anterior view: R <- x -> L, z up = S"),
+                                        (1, 2, "lateral view: A <- y -> P, z up = S")]):
         ax.scatter(mv[:, i], mv[:, j], s=0.2, c="0.75", rasterized=True)
         tri = Triangulation(v[:, i], v[:, j], f)
         pc = ax.tripcolor(tri, err, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="gouraud")
         ax.set_aspect("equal")
         ax.set_title(title, fontsize=9)
-        ax.set_xlabel("mm")
+        ax.set_xlabel(("x" if i == 0 else "y") + " (mm)")
+        ax.set_ylabel("z (mm)")
     fig.colorbar(pc, ax=axes, shrink=0.85, label="signed error, mm (+ outside measured skin)")
     fig.suptitle(f"{name}: predicted skin vs measured (grey)")
     return fig
@@ -100,19 +100,209 @@ def _table(header: list[str], rows: list[list]) -> str:
     return f"<table><tr>{th}</tr>{body}</table>"
 
 
+def common_error_limit(errors) -> float:
+    """One colour limit (mm) for every position's error map: the 98th percentile of |signed
+    error| over all positions together (1 mm when there is no error)."""
+    allerr = np.concatenate([np.abs(np.asarray(e, float)).ravel() for e in errors] or [[]])
+    lim = float(np.nanpercentile(allerr, 98)) if allerr.size else 1.0
+    return lim if lim > 0 and math.isfinite(lim) else 1.0
+
+
+def parameter_units(model: Mapping[str, Any], path: str) -> str:
+    """The unit of a parameter path (``materials.<region>.<p>`` or ``effects.<name>.<p>``),
+    from the registered material or effect; ``"?"`` when the registry does not know it."""
+    from mechanics.effects import EFFECTS
+    from mechanics.materials import MATERIALS
+
+    parts = str(path).split("|")[0].split(".")
+    if len(parts) != 3:
+        return "?"
+    kind, owner, name = parts
+    if kind == "materials":
+        law = (model.get("materials", {}).get(owner) or {}).get("name")
+        cls = MATERIALS.get(law)
+    else:
+        cls = EFFECTS.get(owner.split(":", 1)[0])
+    for p in getattr(cls, "params", ()) if cls is not None else ():
+        if p.name == name:
+            return p.unit
+    return "?"
+
+
+def _figure(n: int, width: float = 4.2, height: float = 4.0):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, n, figsize=(width * n, height), squeeze=False)
+    return fig, list(axes[0])
+
+
+def _segmentation_figure(name: str, img, labels, title: str):
+    from imaging.views import centre_index, draw_slice
+
+    fig, axes = _figure(3)
+    for ax, view in zip(axes, ("axial", "coronal", "sagittal")):
+        draw_slice(ax, img, view, centre_index(img, view, labels), labels=labels)
+    fig.suptitle(f"{name}: {title} (orange breast, red muscle, green gland)", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def _registration_figure(name: str, reference, moved, ref_labels, points):
+    from imaging.views import centre_index, draw_slice
+
+    fig, axes = _figure(3)
+    for ax, view in zip(axes, ("axial", "coronal", "sagittal")):
+        draw_slice(ax, reference, view, centre_index(reference, view, ref_labels),
+                   overlay=moved, points=points)
+    fig.suptitle(f"{name} registered onto the reference: reference green, {name} magenta, "
+                 "grey where they agree; cyan: fiducials", fontsize=10)
+    fig.tight_layout()
+    return fig
+
+
+def _img(fig, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{_png(fig)}">'
+
+
+def _qa_sections(images: Mapping[str, Any]) -> list[str]:
+    """Segmentation and registration QA: figures and tables."""
+    import SimpleITK as sitk
+
+    from imaging.qa import tissue_volumes_ml
+
+    parts = ["<h2 id='segmentation'>Segmentation QA</h2>",
+             "<p>Each position's label map on its own image (central slices through the "
+             "labelled tissue; radiological display, axes in mm).</p>"]
+    rows = []
+    seg_dirs, vols = images.get("segment_dirs") or {}, images.get("input_volumes") or {}
+    for pos in images["labels"]:
+        lab_path = Path(seg_dirs[pos]) / f"{pos}_labels.nii.gz" if pos in seg_dirs else None
+        if lab_path is None or not lab_path.is_file() or pos not in vols:
+            continue
+        labels = sitk.ReadImage(str(lab_path))
+        img = sitk.ReadImage(str(vols[pos]))
+        v = tissue_volumes_ml(labels)
+        rows.append([pos, *(v.get(k) for k in ("breast", "muscle", "gland"))])
+        parts.append(_img(_segmentation_figure(pos, img, labels, "segmentation"),
+                          f"segmentation {pos}"))
+    if rows:
+        parts.insert(2, _table(["position", "breast (ml)", "muscle (ml)", "gland (ml)"], rows))
+    reg = images.get("registration") or {}
+    ref = images["reference"]
+    parts += ["<h2 id='registration'>Registration QA</h2>",
+              f"<p>Rigid transforms of every position into the reference frame ({html.escape(ref)}"
+              "); <code>&lt;position&gt;.tfm</code> maps reference points into the position's "
+              "image.</p>"]
+    rrows = []
+    for pos, e in (reg.get("positions") or {}).items():
+        res = e.get("fiducial_residuals_mm") or {}
+        tre = e.get("tre_mm") or {}
+        rrows.append([pos, e.get("initialisation"), len(e.get("fiducials_used") or []),
+                      max(res.values()) if res else None, e.get("correlation"),
+                      tre.get("mean"), e.get("rotation_error_deg"),
+                      "; ".join(e.get("warnings") or []) or "-"])
+    parts.append(_table(["position", "initialisation", "fiducials used",
+                         "max fiducial residual (mm)", "correlation", "TRE mean (mm)",
+                         "rotation error (deg)", "warnings"], rrows))
+    out = Path(images.get("out", "."))
+    reference = sitk.ReadImage(str(out / images["volumes"][ref]))
+    ref_labels = sitk.ReadImage(str(out / images["labels"][ref]))
+    for pos in (reg.get("positions") or {}):
+        moved = sitk.ReadImage(str(out / images["volumes"][pos]))
+        pts = {f"{k}": v for k, v in (images.get("fiducials", {}).get(pos) or {}).items()}
+        parts.append(_img(_registration_figure(pos, reference, moved, ref_labels, pts),
+                          f"registration {pos}"))
+    return parts
+
+
+def _status_rows(metrics: Mapping[str, Any], fit_info: Mapping[str, Any] | None,
+                 sf: Mapping[str, Any]) -> list[list]:
+    rows = [["stress-free geometry", sf.get("method"),
+             "converged" if sf.get("converged") else "NOT converged",
+             f"{sf.get('forward_solves', 0)} forward solves"]]
+    for p, m in metrics["positions"].items():
+        ok = m.get("converged")
+        rows.append([f"predict {p}", "forward solve",
+                     "converged" if ok else f"NOT converged (load {m.get('load_reached')})",
+                     m.get("error") or "-"])
+    if fit_info:
+        rows.append(["fit", fit_info.get("method"),
+                     fit_info.get("termination") or "best of the evaluations",
+                     f"{fit_info.get('n_simulations')} simulations, "
+                     f"{fit_info.get('n_failed', 0)} failed"])
+    else:
+        rows.append(["fit", "none", "parameters as configured", "-"])
+    return rows
+
+
 def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, Any],
                  pictures: Mapping[str, tuple], fit_info: Mapping[str, Any] | None,
-                 sf: Mapping[str, Any], *, subject_id: str) -> Path:
-    """Write ``path`` (HTML): metrics table, per-region and landmark tables, error maps per
-    position, the stress-free and fit histories, and the parameters."""
-    from breastmodel.config import write_atomic
+                 sf: Mapping[str, Any], *, subject_id: str,
+                 images: Mapping[str, Any] | None = None,
+                 config: Mapping[str, Any] | None = None,
+                 provenance_path: Path | None = None) -> Path:
+    """Write ``path`` (one self-contained HTML page, pictures embedded as PNG).
+
+    Sections: run status (stress-free, every prediction, the fit), parameters with units,
+    bounds and uncertainty, skin distances, per-region and landmark tables, error maps on one
+    colour scale, segmentation and registration QA (when ``images`` is given, from
+    :func:`breastmodel.pipeline.outputs.export_images`), the stress-free and fit histories,
+    the configuration and the package versions with the date.
+
+    Parameters
+    ----------
+    path : output file
+    metrics : the run's metrics (``metrics.json``)
+    params : the parameters used (``params.json``)
+    pictures : position -> (predicted skin vertices (n, 3) mm, triangles, signed error (n,)
+        mm, measured skin (vertices, triangles))
+    fit_info : the fit result or None
+    sf : the stress-free stage's info (with its history)
+    subject_id : the subject's name
+    images : exported images, transforms, registration report and stage folders
+    config : the resolved run config
+    provenance_path : ``provenance.json`` (command and package versions)
+    """
+    import datetime
+    import json
+
+    from breastmodel.config import package_versions, write_atomic
 
     pos = metrics["positions"]
+    now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    prov = {}
+    if provenance_path is not None and Path(provenance_path).is_file():
+        prov = json.loads(Path(provenance_path).read_text())
+    versions = prov.get("versions") or package_versions()
     parts = [f"<h1>breastmodel run: {html.escape(subject_id)}</h1>",
-             "<h2>Skin surface distances (mm)</h2>",
-             _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
-                    [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),
-                      m.get("p95_mm"), m.get("converged")] for p, m in pos.items()])]
+             f"<p>{html.escape(now)}; breastmodel {html.escape(versions.get('breastmodel', '?'))}"
+             f"; reference frame: {html.escape(str(metrics.get('reference')))} (LPS, mm)</p>",
+             "<h2 id='status'>Run status</h2>",
+             _table(["step", "method", "status", "details"],
+                    _status_rows(metrics, fit_info, sf))]
+    model = params.get("model", {})
+    bounds = (config or {}).get("fit", {}).get("parameters") or {}
+    unc = (fit_info or {}).get("uncertainty") or {}
+    prow = []
+    for k, v in params.get("parameters", {}).items():
+        b = bounds.get(k) or {}
+        rng = (f"[{b['min']:g}, {b['max']:g}]" if "min" in b and "max" in b
+               else ", ".join(f"{x:g}" for x in b["values"]) if "values" in b else "-")
+        u = unc.get(k)
+        prow.append([k, v, parameter_units(model, k), "fitted" if k in bounds and fit_info
+                     else "fixed", rng,
+                     u if u is not None else ("not estimated" if k in bounds and fit_info
+                                              else "-")])
+    parts += ["<h2 id='parameters'>Parameters</h2>",
+              _table(["parameter", "value", "unit", "fitted or fixed", "search range",
+                      "uncertainty (1 sd)"], prow)]
+    parts += ["<h2 id='distances'>Skin surface distances (mm)</h2>",
+              _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
+                     [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),
+                       m.get("p95_mm"), m.get("converged")] for p, m in pos.items()])]
     rows = [[p, r, s.get("n"), s.get("mean_mm"), s.get("mean_signed_mm"), s.get("rmse_mm"),
              s.get("p95_mm"), s.get("max_mm")]
             for p, m in pos.items() for r, s in m.get("regions", {}).items()]
@@ -129,16 +319,16 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
                   _table(["position", "mean error", "max error"], lsum)]
         if lrows:
             parts.append(_table(["position", "landmark", "error"], lrows))
-    parts.append("<h2>Error maps</h2>")
+    lim = common_error_limit([p[2] for p in pictures.values()])
+    parts += ["<h2 id='maps'>Error maps</h2>",
+              f"<p>Signed distance of the predicted skin to the measured skin (+ outside), on "
+              f"one colour scale for every position: &plusmn;{lim:.2f} mm.</p>"]
     for name, (v, f, err, measured) in pictures.items():
-        png = _png(_error_figure(name, v, f, err, measured))
-        parts.append(f'<img alt="{html.escape(name)}" src="data:image/png;base64,{png}">')
-    parts += ["<h2>Stress-free geometry and fit</h2>",
-              f'<img alt="history" src="data:image/png;base64,'
-              f'{_png(_history_figure(fit_info, sf))}">',
-              "<h2>Parameters</h2>",
-              _table(["parameter", "value"], [[k, v] for k, v in
-                                              params.get("parameters", {}).items()])]
+        parts.append(_img(_error_figure(name, v, f, err, measured, lim), name))
+    if images:
+        parts += _qa_sections(images)
+    parts += ["<h2 id='history'>Stress-free geometry and fit</h2>",
+              _img(_history_figure(fit_info, sf), "history")]
     if fit_info:
         best = fit_info.get("best", {})
         rows = [[k, v] for k, v in best.get("params", {}).items()]
@@ -155,9 +345,22 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
         parts += ["<h2>Sensitivity at the optimum</h2>",
                   _table(["parameter", "value", "MHD at -10%", "MHD at +10%",
                           "d ln MHD / d ln p"], srows)]
+    if images:
+        files = ["run.vtm (ParaView)", *images["volumes"].values(), *images["labels"].values(),
+                 *images["transforms"].values(), *images.get("colour_tables", [])]
+        parts += ["<h2 id='files'>Files</h2>",
+                  "<p>" + ", ".join(html.escape(f) for f in files) + "</p>"]
+    cfg_file = Path(provenance_path).with_name("config.toml") if provenance_path else None
+    if cfg_file is not None and cfg_file.is_file():
+        parts += ["<h2 id='config'>Configuration (config.toml)</h2>",
+                  f"<pre>{html.escape(cfg_file.read_text())}</pre>"]
+    parts += ["<h2 id='versions'>Versions</h2>",
+              _table(["package", "version"],
+                     [["command", prov.get("command", "-")], *versions.items()])]
     style = ("body{font-family:sans-serif;max-width:1100px;margin:auto}"
              "table{border-collapse:collapse;margin:8px 0}"
              "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}"
+             "pre{background:#f4f4f4;padding:6px;font-size:11px}"
              "img{max-width:100%}")
     doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>breastmodel "
            f"{html.escape(subject_id)}</title><style>{style}</style></head><body>"

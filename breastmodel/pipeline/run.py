@@ -38,13 +38,17 @@ class RunResult(dict):
 
 @dataclass(frozen=True, eq=False)
 class Prepared:
-    """subject, positions (names), runner (stage log), problem_dir, problem_key."""
+    """subject, positions (names), runner (stage log), problem_dir, problem_key, and the
+    stage folders of the images (``register_dir``, ``segment_dirs`` {position: folder};
+    None for a given problem)."""
 
     subject: Any
     positions: list[str]
     runner: Any
     problem_dir: Path
     problem_key: str
+    register_dir: Path | None = None
+    segment_dirs: Mapping[str, Path] | None = None
 
 
 class _Runner:
@@ -240,8 +244,12 @@ def _predict(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[str, A
                         position, exc)
         x = state.x
         m = score_position(problem, x, position, details=True)
+        fields = {"X": state.X, "stress": np.asarray(state.stress).reshape(-1, 9),
+                  "J": state.J}
+        if state.pressure is not None:
+            fields["pressure"] = state.pressure
         np.savez(d / "predicted.npz", x=x, signed_error=m.pop("signed_error"),
-                 skin_nodes=m.pop("skin_nodes"))
+                 skin_nodes=m.pop("skin_nodes"), **fields)
         m.update(converged=bool(state.converged), load_reached=float(state.load),
                  newton_iterations=state.newton_iterations, error=error,
                  max_displacement_mm=float(state.max_displacement()))
@@ -263,9 +271,10 @@ def _check_subject(subject, cfg: Mapping[str, Any]) -> list[str]:
             raise StageError("subject", f"[evaluate] position {p!r} is missing from the "
                              f"subject (it has {positions})", subject.root / "subject.toml")
     if cfg["register"].get("require_fiducials", True) and not subject.fiducials:
-        raise StageError("register", "no fiducials.csv: rigid registration is initialised "
-                         "from the fiducials; add them or set [register] require_fiducials = "
-                         "false to initialise from image moments", subject.root)
+        raise StageError("register", "no fiducials.csv (or fiducials.mrk.json): rigid "
+                         "registration is initialised from the fiducials; add them or set "
+                         "[register] require_fiducials = false to initialise from image "
+                         "moments", subject.root)
     return positions
 
 
@@ -282,6 +291,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
         breast in a segmentation...), naming the file and the problem.
     """
     from breastmodel.config import write_provenance
+    from imaging.markups import markups_files
     from imaging.subject import SubjectError, read_subject
 
     out = Path(out)
@@ -311,13 +321,14 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
         subject.positions[p].volume_path for p in positions]
     if (subject.root / "fiducials.csv").is_file():
         sub_files.append(subject.root / "fiducials.csv")
+    sub_files += markups_files(subject.root, positions)
     reg_dir, reg_key = R.stage("register", {"register": cfg["register"]},
                                [*seg_keys, *sub_files], _register(subject, seg_dirs, cfg))
     lm = [subject.root / "landmarks.csv"] if (subject.root / "landmarks.csv").is_file() else []
     prob_dir, prob_key = R.stage("problem", {"mesh": cfg["mesh"], "surface": cfg["surface"]},
                                  [reg_key, *lm], _problem(subject, reg_dir, cfg),
                                  label="mesh + measured skins")
-    return Prepared(subject, positions, R, prob_dir, prob_key)
+    return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs)
 
 
 def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
@@ -417,7 +428,11 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
         params["fit"] = {k: fit_info[k] for k in ("method", "best", "n_simulations",
                                                   "calibrate", "evaluate") if k in fit_info}
     result = write_outputs(out, prob_dir, sf_dir, pred_dirs, params, fit_info,
-                           subject_id=subject.id)
+                           subject_id=subject.id, register_dir=prep.register_dir,
+                           segment_dirs=prep.segment_dirs,
+                           volumes={p: subject.positions[p].volume_path for p in positions}
+                           if prep.register_dir is not None else None,
+                           config=cfg)
     res = RunResult(stages=R.stages, metrics=result, params=params, out=str(out),
                     wall_s=time.perf_counter() - t0)
     write_json(out / "stages.json", {"stages": R.stages, "wall_s": res["wall_s"],
