@@ -88,7 +88,7 @@ def test_run_writes_metrics_surfaces_params_report(first_run):
     params = json.loads((out / "params.json").read_text())
     assert params["parameters"]["materials.breast_left.E"] == 1.0
     html = (out / "report.html").read_text()
-    assert html.count("data:image/png;base64,") == len(POSITIONS) + 1
+    assert html.count("data:image/png;base64,") >= len(POSITIONS) + 1
     for pos in POSITIONS:
         assert pos in html
 
@@ -220,3 +220,107 @@ def test_segmentation_without_breast_fails_at_segment(phantom, tmp_path):
 def test_bad_config_is_rejected(raw, match):
     with pytest.raises(ConfigError, match=match):
         resolve_config(raw)
+
+
+def _cache_file(out: Path, label: str, name: str) -> Path:
+    """A file of the stage (by its label in stages.json) that the last run used."""
+    for s in json.loads((out / "stages.json").read_text())["stages"]:
+        if s["label"] == label:
+            return out / "cache" / s["name"] / s["key"] / name
+    raise KeyError(label)
+
+
+def test_run_opens_in_paraview(first_run):
+    """run.vtm loads every position; the VTU carries the prediction's fields and the VTP the
+    signed error whose mean magnitude is metrics.json's predicted-to-measured mean."""
+    import pyvista as pv
+
+    out, _ = first_run
+    metrics = json.loads((out / "metrics.json").read_text())
+    run = pv.read(out / "run.vtm")
+    assert list(run.keys()) == list(metrics["positions"])
+    X = np.load(_cache_file(out, "stress-free (inverse)", "X.npy"))
+    for pos, m in metrics["positions"].items():
+        block = run[pos]
+        assert list(block.keys()) == ["mesh", "predicted skin", "measured skin"]
+        vol = pv.read(out / f"{pos}.vtu")
+        assert vol.n_cells == block["mesh"].n_cells
+        for name, shape in (("displacement", (vol.n_points, 3)), ("stress", (vol.n_cells, 9)),
+                            ("J", (vol.n_cells,)), ("region", (vol.n_cells,)),
+                            ("von_mises", (vol.n_cells,))):
+            assert vol[name].shape == shape, (pos, name)
+        # points are the predicted positions; minus the displacement, the stress-free ones
+        pred = np.load(_cache_file(out, f"predict {pos}", "predicted.npz"))
+        np.testing.assert_allclose(vol.points, pred["x"], atol=1e-9)
+        np.testing.assert_allclose(vol.points - vol["displacement"], X, atol=1e-9)
+        assert np.all(np.isfinite(vol["stress"])) and np.all(vol["J"] > 0)
+        assert set(np.unique(vol["region"])) <= {1, 2, 3, 4, 5}
+        skin = pv.read(out / f"{pos}_skin.vtp")
+        err = skin["signed_error_mm"]
+        assert skin.n_points == m["n_pred"] and skin.n_cells > 0
+        assert float(np.mean(np.abs(err))) == pytest.approx(m["mean_pred_to_meas_mm"],
+                                                             rel=1e-12)
+        meas = pv.read(out / f"{pos}_measured_skin.vtp")
+        assert meas.n_points == m["n_meas"]
+
+
+def test_run_opens_in_slicer(first_run):
+    """Label maps and volumes on the reference grid, rigid transforms, colour tables and
+    fiducial markups, read as SimpleITK and Slicer would."""
+    import SimpleITK as sitk
+
+    from imaging.markups import read_markups
+
+    out, _ = first_run
+    reg = json.loads(_cache_file(out, "register", "registration.json").read_text())
+    ref = reg["reference"]
+    ref_img = sitk.ReadImage(str(out / f"{ref}_in_reference.nii.gz"))
+    table = {}
+    for line in (out / "labels.ctbl").read_text().splitlines():
+        if not line.startswith("#"):
+            code, name, *rgba = line.split()
+            table[int(code)] = name
+    assert table == {0: "background", 1: "breast", 2: "muscle", 3: "gland"}
+    assert '"breast"' in (out / "labels_itksnap.txt").read_text()
+    for pos in POSITIONS:
+        img = sitk.ReadImage(str(out / f"{pos}_in_reference.nii.gz"))
+        lab = sitk.ReadImage(str(out / f"{pos}_labels_in_reference.nii.gz"))
+        for im in (img, lab):
+            assert im.GetSize() == ref_img.GetSize()
+            assert im.GetOrigin() == pytest.approx(ref_img.GetOrigin())
+        codes = set(np.unique(sitk.GetArrayViewFromImage(lab)).tolist())
+        assert {1, 2} <= codes <= set(table)
+        tfm = sitk.ReadTransform(str(out / f"{pos}.tfm"))
+        params = np.asarray(tfm.GetParameters())
+        if pos == ref:
+            np.testing.assert_allclose(params, 0.0)
+            continue
+        cached = sitk.ReadTransform(str(_cache_file(out, "register", f"{pos}.tfm")))
+        np.testing.assert_allclose(params, cached.GetParameters())
+        # a fiducial brought into the reference frame lies its registration residual away
+        # from the reference's own (rigid motions keep distances)
+        mapped = read_markups(out / f"{pos}_fiducials.mrk.json")[pos]
+        ref_fid = reg["fiducials_reference_mm"]
+        res = reg["positions"][pos]["fiducial_residuals_mm"]
+        assert res
+        for k, r in res.items():
+            assert np.linalg.norm(mapped[k] - np.asarray(ref_fid[k])) == pytest.approx(r,
+                                                                                   abs=1e-6)
+    # the CSV holds the same points (the labels found may differ between positions)
+    rows = (out / "fiducials_in_reference.csv").read_text().splitlines()
+    assert rows[0] == "position,label,x,y,z"
+    for row in rows[1:]:
+        pos, k, *xyz = row.split(",")
+        p = read_markups(out / f"{pos}_fiducials.mrk.json")[pos][k]
+        np.testing.assert_allclose([float(v) for v in xyz], p, atol=1e-4)
+
+
+def test_report_shows_every_section(first_run):
+    out, _ = first_run
+    html = (out / "report.html").read_text()
+    for section in ("status", "parameters", "distances", "maps", "segmentation",
+                    "registration", "history", "config", "versions"):
+        assert f"id='{section}'" in html, section
+    assert "<td>kPa</td>" in html and "one colour scale" in html
+    # one error map per position, three segmentation and two registration figures, history
+    assert html.count("data:image/png;base64,") == 3 + 3 + 2 + 1
