@@ -19,7 +19,7 @@ import numpy as np
 import SimpleITK as sitk
 
 __all__ = ["ORIENTATIONS", "LABEL_COLOURS", "lps", "slice_count", "centre_index",
-           "oriented_slice", "draw_slice"]
+           "oriented_slice", "slice_position_mm", "draw_slice", "views_figure", "slice_browser"]
 
 #: view -> (fixed array axis in (z, y, x), (screen-left, screen-right), (bottom, top))
 ORIENTATIONS = {"axial": (0, ("R", "L"), ("P", "A")),
@@ -149,3 +149,54 @@ def draw_slice(ax, img: sitk.Image, view: str, index: int, *,
     ax.set_aspect("equal")
     ax.set_title(title if title is not None
                  else f"{view} {names[axis_xyz]} = {pos:.1f} mm", fontsize=9)
+
+
+def views_figure(img: sitk.Image, labels: sitk.Image | None = None, *,
+                 indices: Mapping[str, int] | None = None, title: str = ""):
+    """Axial, coronal and sagittal views side by side (:func:`draw_slice`), at ``indices``
+    (view -> slice index; default :func:`centre_index`). Returns a matplotlib Figure."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13, 4.5))
+    for ax, view in zip(fig.subplots(1, 3), ORIENTATIONS):
+        i = (indices or {}).get(view, centre_index(img, view, labels))
+        draw_slice(ax, img, view, i, labels=labels)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def slice_browser(img: sitk.Image, labels: sitk.Image | None = None):
+    """A Jupyter widget that scrolls through the volume in all three orientations: one slider
+    per view (slice index; the title gives its position in mm) above the three views with
+    label contours and patient directions on the axes.
+
+    Returns
+    -------
+    ipywidgets.VBox
+        ``.sliders`` (view -> IntSlider) and ``.figure`` (the matplotlib Figure drawn) are
+        attached for scripted use.
+    """
+    import ipywidgets as w
+    from IPython.display import display
+
+    sliders = {view: w.IntSlider(value=centre_index(img, view, labels), min=0,
+                                 max=slice_count(img, view) - 1, description=view,
+                                 continuous_update=False,
+                                 layout=w.Layout(width="32%"))
+               for view in ORIENTATIONS}
+    out = w.Output()
+    box = w.VBox([w.HBox(list(sliders.values())), out])
+
+    def redraw(_=None):
+        box.figure = views_figure(img, labels, indices={k: s.value for k, s in sliders.items()})
+        out.clear_output(wait=True)
+        with out:
+            display(box.figure)
+
+    for s in sliders.values():
+        s.observe(redraw, names="value")
+    box.sliders = sliders
+    redraw()
+    return box

@@ -18,7 +18,9 @@ def test_committed_notebook_has_no_outputs():
 def test_notebook_runs_and_saves_labels(tmp_path, monkeypatch):
     text, n_images = execute(NOTEBOOK, tmp_path, monkeypatch, timeout=300)
     assert "Dice" in text and "with seeds" not in text  # titles are in figures, not text
-    assert n_images >= 2
+    # the QA pictures before and after the seed, and the three orientations with their
+    # patient directions (the slider widget's own drawing needs a live front end)
+    assert n_images >= 3
     saved = read_volume(tmp_path / "supine_labels.nii.gz")
     truth = read_volume(tmp_path / "phantom_truth" / "supine_labels.nii.gz")
     d = dice(saved, truth)
