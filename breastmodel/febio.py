@@ -187,6 +187,39 @@ def run_febio(feb_text: str, *, work_dir: str | os.PathLike, febio: str | os.Pat
     return FebioRun(u, converged, wall, iterations, tail, feb)
 
 
+#: Placeholder neo-Hookean Young's moduli (kPa) of the mesh export: the paper's optimum order
+#: of magnitude; the user sets the real ones in FEBio.
+MESH_YOUNG_KPA = {"breast_left": 0.3, "breast_right": 0.3, "gland_left": 0.3,
+                  "gland_right": 0.3, "muscle": 10.0}
+MESH_POISSON = 0.49
+
+
+def mesh_feb_text(mesh, *, element: str = "ut4") -> str:
+    """FEBio 4.0 file of a fresh mesh for users to finish in FEBio Studio: every named set
+    (node sets, face sets as surfaces, node pairs as discrete sets), one domain per region with
+    a placeholder Neo-Hookean (``MESH_YOUNG_KPA``, nu 0.49), gravity along -z (1000 kg/m^3)
+    and the node set ``fixed`` held, if the mesh has one."""
+    from mechanics.mesh import REGIONS
+    from mechanics.model import build_model
+
+    names = {v: k for k, v in REGIONS.items()}
+    mats = {int(c): {"name": "neo_hookean", "nu": MESH_POISSON,
+                     "E": MESH_YOUNG_KPA.get(names.get(int(c), ""), 1.0)}
+            for c in np.unique(mesh.region)}
+    effects = {"gravity": {"direction": (0.0, 0.0, -1.0)}}
+    if "fixed" in mesh.node_sets and len(mesh.node_sets["fixed"]):
+        effects["fixed"] = {"node_set": "fixed"}
+    return feb_text(build_model(mesh, mats, effects), element=element, export_sets=True)
+
+
+def write_mesh_feb(mesh, path: str | os.PathLike, *, element: str = "ut4") -> Path:
+    """Write :func:`mesh_feb_text` to ``path`` atomically; returns the path."""
+    text = mesh_feb_text(mesh, element=element)
+    path = Path(path)
+    _atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="latin-1"))
+    return path
+
+
 def _atomic_write(path: Path, write) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

@@ -35,6 +35,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from mechanics.mesh import REGIONS
+
 if TYPE_CHECKING:
     from mechanics.model import Model
 
@@ -134,7 +136,10 @@ class FebBuilder:
         self.material_names: list[str] = []
         self.density: dict[int, float] = {}  # region -> kg/mm^3 (gravity sets it)
         self.body_force: np.ndarray | None = None  # (3,) mm/s^2, times density
-        self._names: set[str] = set()
+        names = {v: k for k, v in REGIONS.items()}
+        # one namespace per kind of FEBio list; solid parts are named after their regions
+        self._names: dict[str, set[str]] = {"part": {names.get(int(c), f"region_{int(c)}")
+                                                     for c in np.unique(self.mesh.region)}}
         self._next_elem = 1 + self.mesh.n_tets
         self.shell_domains: list[tuple[str, str, float]] = []  # (name, material, thickness)
         self.shell_elements: list[str] = []
@@ -146,13 +151,15 @@ class FebBuilder:
             self.nodes_out, self.tets_out, self._edges = self.X, self.mesh.tets, None
 
     # -- names and sets ------------------------------------------------------------------
-    def unique(self, base: str) -> str:
-        """A name not used yet in this file, from ``base``."""
+    def unique(self, base: str, kind: str) -> str:
+        """A name not used yet for this ``kind`` of list ("node_set", "surface", "part",
+        "discrete_set", "data", ...), from ``base``."""
+        used = self._names.setdefault(kind, set())
         name, k = base, 1
-        while name in self._names:
+        while name in used:
             k += 1
             name = f"{base}_{k}"
-        self._names.add(name)
+        used.add(name)
         return name
 
     def _extend(self, nodes: np.ndarray) -> np.ndarray:
@@ -166,7 +173,7 @@ class FebBuilder:
 
     def node_set(self, base: str, nodes) -> str:
         """Add a node set (0-based mesh node indices); returns its name."""
-        name = self.unique(base)
+        name = self.unique(base, "node_set")
         ids = self._extend(nodes)
         self.lines["Mesh"].append(f'\t\t<NodeSet name="{name}">{_ids(ids)}</NodeSet>')
         return name
@@ -177,11 +184,25 @@ class FebBuilder:
             raise unsupported(owner, "surfaces, shells and contact are written for linear "
                               "faces only; use element 'ut4' or 'tet4'")
 
+    def export_sets(self) -> None:
+        """Write every named set of the mesh under its own name (node sets, face sets as
+        surfaces, node pairs as discrete sets), for users who edit the file further."""
+        mesh = self.mesh
+        for k, ids in mesh.node_sets.items():
+            self.node_set(k, ids)
+        for k, f in mesh.face_sets.items():
+            self.surface(k, f, owner=f"face set {k!r}")
+        for k, pairs in mesh.node_pairs.items():
+            name = self.unique(k, "discrete_set")
+            self.lines["Mesh"] += ([f'\t\t<DiscreteSet name="{name}">']
+                                   + [f"\t\t\t<delem>{_ids(p)}</delem>" for p in pairs]
+                                   + ["\t\t</DiscreteSet>"])
+
     def surface(self, base: str, faces, *, owner: str = "surface") -> str:
         """Add a tri3 surface (faces (k, 3), 0-based, right-hand normal = outward); returns
         its name."""
         self.require_linear_faces(owner)
-        name = self.unique(base)
+        name = self.unique(base, "surface")
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
         lines = [f'\t\t<Surface name="{name}">']
         lines += [f'\t\t\t<tri3 id="{i + 1}">{_ids(f)}</tri3>' for i, f in enumerate(faces)]
@@ -191,7 +212,7 @@ class FebBuilder:
 
     def surface_pair(self, base: str, primary: str, secondary: str) -> str:
         """Add a contact surface pair of two surfaces added before; returns its name."""
-        name = self.unique(base)
+        name = self.unique(base, "surface_pair")
         self.lines["Mesh"] += [f'\t\t<SurfacePair name="{name}">',
                                f"\t\t\t<primary>{primary}</primary>",
                                f"\t\t\t<secondary>{secondary}</secondary>",
@@ -202,7 +223,10 @@ class FebBuilder:
     def material(self, base: str, ftype: str, params: Mapping[str, Any]) -> str:
         """Add a material block (FEBio type and parameters); returns its name (``mat`` of a
         domain). Its id is its position."""
-        name = self.unique(base)
+        name, k = base, 1
+        while name in self.material_names:
+            k += 1
+            name = f"{base}_{k}"
         mid = len(self.materials) + 1
         block = [f'\t\t<material id="{mid}" name="{name}" type="{ftype}">']
         block += _param_lines(params, "\t\t\t")
@@ -216,7 +240,7 @@ class FebBuilder:
         """Add tri3 shell elements (faces (k, 3), 0-based) of one thickness (mm) with a material
         added before; returns the domain name."""
         self.require_linear_faces(owner)
-        name = self.unique(base)
+        name = self.unique(base, "part")
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
         lines = [f'\t\t<Elements type="tri3" name="{name}">']
         for f in faces:
@@ -230,13 +254,13 @@ class FebBuilder:
     def discrete(self, base: str, pairs, ftype: str, params: Mapping[str, Any]) -> str:
         """Add two-node discrete elements (pairs (k, 2), 0-based) with one discrete material;
         returns the discrete set's name."""
-        name = self.unique(base)
+        name = self.unique(base, "discrete_set")
         pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
         self.lines["Mesh"] += ([f'\t\t<DiscreteSet name="{name}">']
                                + [f"\t\t\t<delem>{_ids(p)}</delem>" for p in pairs]
                                + ["\t\t</DiscreteSet>"])
         did = len(self._discrete_materials) + 1
-        mname = self.unique(f"{name}_material")
+        mname = self.unique(f"{name}_material", "discrete_material")
         block = [f'\t\t<discrete_material id="{did}" name="{mname}" type="{ftype}">']
         block += _param_lines(params, "\t\t\t")
         block.append("\t\t</discrete_material>")
@@ -283,10 +307,10 @@ class FebBuilder:
             ends = self._edges[ext[len(nodes):] - self.mesh.n_nodes]
             vals[len(nodes):] = 0.5 * (values[[pos[int(a)] for a in ends[:, 0]]]
                                        + values[[pos[int(b)] for b in ends[:, 1]]])
-        name = self.unique(base)
+        name = self.unique(base, "node_set")
         self.lines["Mesh"].append(f'\t\t<NodeSet name="{name}">{_ids(ext)}</NodeSet>')
         for j, c in enumerate(comps):
-            data = self.unique(f"{name}_{'xyz'[c]}")
+            data = self.unique(f"{name}_{'xyz'[c]}", "data")
             self.lines["MeshData"].append(
                 f'\t\t<NodeData name="{data}" node_set="{name}" data_type="scalar">\n'
                 + "".join(f'\t\t\t<node lid="{i + 1}">{_num(v)}</node>\n'
@@ -306,9 +330,9 @@ class FebBuilder:
         nodes, force = nodes[keep], force[keep]
         if len(nodes) == 0:
             return
-        name = self.unique(base)
+        name = self.unique(base, "node_set")
         self.lines["Mesh"].append(f'\t\t<NodeSet name="{name}">{_ids(nodes)}</NodeSet>')
-        data = self.unique(f"{name}_force")
+        data = self.unique(f"{name}_force", "data")
         self.lines["MeshData"].append(
             f'\t\t<NodeData name="{data}" node_set="{name}" data_type="vec3">\n'
             + "".join(f'\t\t\t<node lid="{i + 1}">{",".join(_num(c) for c in f)}</node>\n'
@@ -361,6 +385,8 @@ class FebBuilder:
         """The complete file."""
         mesh = self.mesh
         codes = [int(c) for c in np.unique(mesh.region)]
+        names = {v: k for k, v in REGIONS.items()}
+        part = {c: names.get(c, f"region_{c}") for c in codes}
         # bulk materials (their density is set by the body force, if any)
         from mechanics.materials import MATERIALS
 
@@ -369,7 +395,7 @@ class FebBuilder:
             spec = self.model.materials[c]
             ftype, params = MATERIALS[spec.name].from_params(spec.params).to_febio()
             params = {"density": self.density.get(c, 0.0), **params}
-            solid_mats[c] = self.material(f"region_{c}", ftype, params)
+            solid_mats[c] = self.material(part[c], ftype, params)
         out = ['<?xml version="1.0" encoding="ISO-8859-1"?>', '<febio_spec version="4.0">',
                "\t<!-- breastmodel: units mm, kPa, mN, kg, s -->"]
         out += [f"\t<!-- approximation: {a} -->" for a in self.approximations]
@@ -383,7 +409,7 @@ class FebBuilder:
         etype = "tet10" if self.element == "tet10" else "tet4"
         eid = 1
         for c in codes:
-            out.append(f'\t\t<Elements type="{etype}" name="region_{c}">')
+            out.append(f'\t\t<Elements type="{etype}" name="{part[c]}">')
             for t in self.tets_out[mesh.region == c]:
                 out.append(f'\t\t\t<elem id="{eid}">{_ids(t)}</elem>')
                 eid += 1
@@ -393,7 +419,7 @@ class FebBuilder:
         out.append("\t</Mesh>")
         out.append("\t<MeshDomains>")
         for c in codes:
-            out.append(f'\t\t<SolidDomain name="region_{c}" mat="{solid_mats[c]}" '
+            out.append(f'\t\t<SolidDomain name="{part[c]}" mat="{solid_mats[c]}" '
                        f'type="{_DOMAIN_TYPE[self.element]}"/>')
         for name, mat, h in self.shell_domains:
             out += [f'\t\t<ShellDomain name="{name}" mat="{mat}">',
@@ -430,7 +456,7 @@ TOLERANCES = {"dtol": 1e-6, "etol": 1e-8, "rtol": 0.0, "lstol": 0.9, "max_refs":
 
 def feb_text(model: Model, *, X: np.ndarray | None = None, element: str = "ut4",
              steps: int = 10, solver: str = "newton", approximate: bool = False,
-             **tolerances: float) -> str:
+             export_sets: bool = False, **tolerances: float) -> str:
     """FEBio 4.0 input text for ``model``.
 
     Parameters
@@ -441,6 +467,8 @@ def feb_text(model: Model, *, X: np.ndarray | None = None, element: str = "ut4",
     steps : number of equal load steps (time 0 -> 1); FEBio's auto time stepper may cut them
     solver : "newton" (full Newton) or "bfgs" (FEBio's quasi-Newton)
     approximate : allow hooks to write approximations (listed as comments in the file)
+    export_sets : also write every named set of the mesh under its own name (node sets,
+        face sets as surfaces, node pairs as discrete sets)
     **tolerances : FEBio solver settings overriding ``TOLERANCES``: ``dtol`` (displacement),
         ``etol`` (energy), ``rtol`` (residual), ``lstol``, ``max_refs``, ``max_ups`` (BFGS),
         ``max_retries``, ``opt_iter``, ``dtmin_fraction``
@@ -461,6 +489,8 @@ def feb_text(model: Model, *, X: np.ndarray | None = None, element: str = "ut4",
     tol = {**TOLERANCES, **tolerances}
     feb = FebBuilder(model, model.mesh.nodes if X is None else X, element=element,
                      approximate=approximate)
+    if export_sets:
+        feb.export_sets()
     for eff in model.effects:
         eff.to_febio(feb)
     return feb.text(steps=steps, solver=solver, tol=tol)

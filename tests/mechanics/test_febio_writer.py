@@ -42,13 +42,13 @@ def test_xml_parses_with_one_based_ids_and_domains_per_region():
     conn = {part.get("name"): np.array([[int(v) - 1 for v in e.text.split(",")] for e in part])
             for part in elems}
     for code in (1, 2):
-        assert np.array_equal(conn[f"region_{code}"], mesh.tets[mesh.region == code])
+        assert np.array_equal(conn[{1: "breast_left", 2: "muscle"}[code]], mesh.tets[mesh.region == code])
     doms = root.findall("./MeshDomains/SolidDomain")
     assert {d.get("type") for d in doms} == {"ut4-solid"}
     mats = {m.get("name"): m for m in root.findall("./Material/material")}
     assert {d.get("mat") for d in doms} == set(mats)
     # the laws map to the same energies: c1 = mu/2, G = mu, k = E / (3 (1 - 2 nu))
-    nh, gent = mats["region_1"], mats["region_2"]
+    nh, gent = mats["breast_left"], mats["muscle"]
     assert nh.get("type") == "Mooney-Rivlin" and gent.get("type") == "Gent"
     assert float(nh.find("c1").text) == pytest.approx(0.5 / 2.98)
     assert float(nh.find("k").text) == pytest.approx(1.0 / (3 * 0.02))
@@ -74,7 +74,7 @@ def test_gravity_and_supports_land_on_the_right_nodes():
     assert np.allclose(f, [-9810.0, 0.0, 0.0])
     mats = {m.get("name"): float(m.find("density").text)
             for m in root.findall("./Material/material")}
-    assert mats == pytest.approx({"region_1": 1e-6, "region_2": 5e-7})
+    assert mats == pytest.approx({"breast_left": 1e-6, "muscle": 5e-7})
 
 
 def test_prescribed_values_become_node_maps():
