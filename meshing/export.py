@@ -1,4 +1,4 @@
-"""Writing meshes and surfaces: VTU (ParaView, 3D Slicer), PLY. (FEBio ``.feb`` files come from
+"""Writing meshes and surfaces: VTU (ParaView, 3D Slicer), VTP, PLY. (FEBio ``.feb`` files come from
 the one writer, :mod:`mechanics.febio`; ``breastmodel.febio.write_mesh_feb`` for a mesh.)"""
 
 from __future__ import annotations

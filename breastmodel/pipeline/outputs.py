@@ -17,6 +17,10 @@
                                                   ``displacement``
 ``<position>_measured_skin.vtp``                  measured skin (reference frame)
 ``<position>_predicted.ply``                      predicted skin, plain geometry
+``model_<position>.feb``                          FEBio Studio / FEBio 4: the model of the
+                                                  position (fitted parameters, gravity,
+                                                  supports, membranes, ligaments, contact) on
+                                                  the stress-free geometry
 ``<position>_in_reference.nii.gz``                3D Slicer / ITK-SNAP: the position's volume
 ``<position>_labels_in_reference.nii.gz``         and label map resampled into the reference
                                                   frame (the reference's own for it)
@@ -46,8 +50,8 @@ import numpy as np
 
 log = logging.getLogger("breastmodel.pipeline")
 
-__all__ = ["LABEL_TABLE", "export_images", "write_colour_tables", "write_outputs",
-           "write_position_meshes", "write_vtm"]
+__all__ = ["LABEL_TABLE", "export_images", "write_colour_tables", "write_febio",
+           "write_outputs", "write_position_meshes", "write_vtm"]
 
 _SUMMARY_KEYS = ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm", "median_mm",
                  "mean_pred_to_meas_mm", "mean_meas_to_pred_mm", "n_pred", "n_meas",
@@ -115,6 +119,49 @@ def write_position_meshes(out: Path, problem, position: str,
     mv, mf = problem.skins[position]
     write_vtp(mv, mf, out / names["measured_skin"])
     return names
+
+
+def write_febio(out: Path, problem, model: Mapping[str, Any], position: str,
+                X: np.ndarray) -> dict[str, Any]:
+    """Write ``model_<position>.feb``: the position's model (materials, that position's
+    gravity, every effect) on the stress-free geometry ``X``, through the one FEBio writer
+    (:func:`mechanics.febio.feb_text`). FEBio's element is the one closest to the model's
+    formulation: UT4 (nodally integrated) for ``"anp"``, the standard tet4 for
+    ``"standard"``, which reproduces our solver exactly.
+
+    Parameters
+    ----------
+    out : output folder
+    problem : :class:`breastmodel.pipeline.problem.Problem`
+    model : the model table the run used (materials, effects, density kg/m^3, g m/s^2,
+        formulation)
+    position : position name
+    X : (N, 3) stress-free node positions, mm
+
+    Returns
+    -------
+    dict
+        ``{"file", "element", "approximations"}``, or ``{"file": None, "why"}`` when FEBio
+        cannot express the model (the file is then not written).
+    """
+    from breastmodel.pipeline.problem import position_model
+    from mechanics.febio import FebioUnsupported, feb_text
+
+    element = "tet4" if model.get("formulation") == "standard" else "ut4"
+    m = position_model(problem, model, position)
+    try:
+        text = feb_text(m, X=np.asarray(X, float), element=element, approximate=True,
+                        export_sets=True)
+    except FebioUnsupported as exc:
+        log.warning("outputs: no model_%s.feb: %s", position, exc)
+        return {"file": None, "why": str(exc)}
+    name = f"model_{position}.feb"
+    tmp = out / f".{name}.tmp"
+    tmp.write_text(text, encoding="latin-1")
+    os.replace(tmp, out / name)
+    approx = [ln.split("approximation:", 1)[1].removesuffix("-->").strip()
+              for ln in text.splitlines() if "<!-- approximation:" in ln]
+    return {"file": name, "element": element, "approximations": approx}
 
 
 def write_vtm(path: Path, blocks: Mapping[str, Mapping[str, str]]) -> Path:
@@ -265,7 +312,7 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
     metrics: dict[str, Any] = {"subject": subject_id, "reference": problem.reference,
                                "units": "mm", "positions": {},
                                "stress_free": {k: v for k, v in sf.items() if k != "history"}}
-    pictures, blocks = {}, {}
+    pictures, blocks, febio = {}, {}, {}
     for pos, d in pred_dirs.items():
         m = json.loads((d / "metrics.json").read_text())
         with np.load(d / "predicted.npz") as z:
@@ -286,6 +333,8 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
         remap[nodes] = np.arange(len(nodes))
         write_ply(x[nodes], remap[faces], out / f"{pos}_predicted.ply")
         pictures[pos] = (x[nodes], remap[faces], err, problem.skins[pos])
+        X = pred["X"] if "X" in pred else np.load(sf_dir / "X.npy")
+        febio[pos] = write_febio(out, problem, params["model"], pos, X)
     write_vtm(out / "run.vtm", blocks)
     images = None
     if register_dir is not None:
@@ -295,7 +344,7 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
         images["input_volumes"] = dict(volumes or {})
         images["reference"] = problem.reference
         images["out"] = out
-    metrics["files"] = {"paraview": "run.vtm", "positions": blocks,
+    metrics["files"] = {"paraview": "run.vtm", "positions": blocks, "febio": febio,
                         **({k: images[k] for k in ("volumes", "labels", "transforms",
                                                    "colour_tables")} if images else {})}
     write_json(out / "metrics.json", metrics)

@@ -350,6 +350,15 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
                  *images["transforms"].values(), *images.get("colour_tables", [])]
         parts += ["<h2 id='files'>Files</h2>",
                   "<p>" + ", ".join(html.escape(f) for f in files) + "</p>"]
+    feb = (metrics.get("files") or {}).get("febio") or {}
+    if feb:
+        parts += ["<h2 id='febio'>FEBio models</h2>",
+                  "<p>One FEBio 4 file per position on the stress-free geometry; open it in "
+                  "FEBio Studio or run <code>febio4 -i FILE</code>.</p>",
+                  _table(["position", "file", "element", "approximations or why not written"],
+                         [[p, e.get("file") or "not written", e.get("element", "-"),
+                           "; ".join(e.get("approximations") or []) or e.get("why") or "none"]
+                          for p, e in feb.items()])]
     cfg_file = Path(provenance_path).with_name("config.toml") if provenance_path else None
     if cfg_file is not None and cfg_file.is_file():
         parts += ["<h2 id='config'>Configuration (config.toml)</h2>",

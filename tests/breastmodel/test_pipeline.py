@@ -319,8 +319,58 @@ def test_report_shows_every_section(first_run):
     out, _ = first_run
     html = (out / "report.html").read_text()
     for section in ("status", "parameters", "distances", "maps", "segmentation",
-                    "registration", "history", "config", "versions"):
+                    "registration", "history", "febio", "config", "versions"):
         assert f"id='{section}'" in html, section
     assert "<td>kPa</td>" in html and "one colour scale" in html
     # one error map per position, three segmentation and two registration figures, history
     assert html.count("data:image/png;base64,") == 3 + 3 + 2 + 1
+
+
+def test_febio_runs_the_written_model_to_our_displacements(first_run, tmp_path):
+    """model_<position>.feb holds the run's materials, gravity and supports; FEBio solves it
+    to our solver's displacements. The model half of the run is redone with standard tets
+    (FEBio's tet4 is the same discretisation; "anp" maps to FEBio's different UT4)."""
+    import tomllib
+    import xml.etree.ElementTree as ET
+
+    from breastmodel.febio import FebioError, find_febio, run_febio
+    from breastmodel.pipeline import run_problem
+
+    try:
+        exe = find_febio()
+    except FebioError as exc:
+        pytest.skip(f"FEBio is not installed: {exc}")
+    out, cfg_path = first_run
+    problem_dir = _cache_file(out, "mesh + measured skins", "problem.json").parent
+    cfg = resolve_config({**tomllib.loads(cfg_path.read_text()),
+                          "model": {"formulation": "standard"}})
+    res = run_problem(problem_dir, cfg, tmp_path / "std", progress=False)
+    d = tmp_path / "std"
+    pos = "prone"
+    feb = d / f"model_{pos}.feb"
+    root = ET.parse(feb).getroot()
+    assert root.tag == "febio_spec" and root.get("version") == "4.0"
+    model = res["params"]["model"]
+    mats = {m.get("name"): m for m in root.iter("material")}
+    assert set(mats) == set(model["materials"])
+    for name, spec in model["materials"].items():  # c1 = mu / 2 = E / (4 (1 + nu))
+        c1 = float(mats[name].find("c1").text)
+        assert 4 * (1 + spec["nu"]) * c1 == pytest.approx(spec["E"], rel=1e-9)
+    assert {d.get("type") for d in root.iter("SolidDomain")} == {"elastic-solid"}
+    force = np.array([float(v) for v in next(root.iter("body_load")).find("force").text
+                      .split(",")])
+    gravity = json.loads((problem_dir / "problem.json").read_text())["gravity"][pos]
+    assert abs(force @ np.asarray(gravity)) == pytest.approx(np.linalg.norm(force))
+    assert np.linalg.norm(force) == pytest.approx(9810.0)  # g in mm/s^2 (mass in kg/mm^3)
+    assert any(bc.get("type") == "zero displacement" for bc in root.iter("bc"))
+
+    with np.load(_cache_file(d, f"predict {pos}", "predicted.npz")) as z:
+        u = z["x"] - z["X"]
+    run = run_febio(feb.read_text(encoding="latin-1"), work_dir=tmp_path / "febio",
+                    febio=exe, n_nodes=len(u))
+    assert run.converged
+    scale = np.linalg.norm(u, axis=1).max()
+    print(f"{pos}: max |u| ours {scale:.4f} mm, max |u_FEBio - u_ours| "
+          f"{np.abs(run.displacement - u).max():.2e} mm, FEBio {run.wall_s:.1f} s")
+    assert scale > 1.0  # the breast sags millimetres
+    assert np.abs(run.displacement - u).max() <= 0.01 * scale
