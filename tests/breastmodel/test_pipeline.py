@@ -374,3 +374,23 @@ def test_febio_runs_the_written_model_to_our_displacements(first_run, tmp_path):
           f"{np.abs(run.displacement - u).max():.2e} mm, FEBio {run.wall_s:.1f} s")
     assert scale > 1.0  # the breast sags millimetres
     assert np.abs(run.displacement - u).max() <= 0.01 * scale
+
+
+def test_report_renders_in_chromium(first_run, tmp_path):
+    """Headless Chromium draws the whole page with its embedded figures: the error maps'
+    deep red and blue and the registration overlay's green and magenta are on the picture."""
+    from breastmodel.pipeline.report import find_chromium, screenshot
+
+    if find_chromium() is None:
+        pytest.skip("no chromium on PATH (Debian: apt-get install -y chromium)")
+    out, _ = first_run
+    png = screenshot(out / "report.html", tmp_path / "report.png")
+    from PIL import Image
+
+    a = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    r, g, b = a[..., 0], a[..., 1], a[..., 2]
+    assert a.shape[0] > 4000 and a.shape[1] == 1200  # the page is long: every section drew
+    colours = {"red": (r > g + 80) & (r > b + 80), "blue": (b > r + 80) & (b > g + 40),
+               "green": (g > r + 80) & (g > b + 80), "magenta": (r > g + 60) & (b > g + 60)}
+    for name, mask in colours.items():
+        assert mask.sum() > 1000, name
