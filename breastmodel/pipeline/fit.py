@@ -25,8 +25,8 @@ import numpy as np
 
 log = logging.getLogger("breastmodel.pipeline")
 
-__all__ = ["fit_parameters", "fit_work_dir", "grid_points", "least_squares", "optimise",
-           "sensitivity"]
+__all__ = ["fit_parameters", "fit_work_dir", "grid_points", "least_squares",
+           "lsq_uncertainty", "optimise", "sensitivity"]
 
 _PENALTY_MM = 1e3  # objective of a failed evaluation as the optimiser sees it
 _LSQ_STEP = 0.05  # log-parameter step of the least-squares Jacobian (5 %)
@@ -218,14 +218,48 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
 
     z0 = (np.log([x0[n] for n in names]) if x0 else 0.5 * (lo + hi)).astype(float)
     w0 = np.clip(z0, lo + 1e-9, hi - 1e-9) - shift
-    stop = "budget spent"
+    stop, uncertainty = "budget spent", {}
     try:
         sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo - shift, hi - shift), method="trf",
                         x_scale=1.0, xtol=1e-4, ftol=1e-4, max_nfev=budget)
         stop = str(sol.message)
+        uncertainty = lsq_uncertainty(sol.jac, sol.fun, np.exp(sol.x + shift), names)
     except _BudgetSpent:
         pass
-    return {**_summary(ev.history, "least_squares"), "termination": stop}
+    return {**_summary(ev.history, "least_squares"), "termination": stop,
+            "uncertainty": uncertainty}
+
+
+def lsq_uncertainty(J: np.ndarray, r: np.ndarray, p: np.ndarray,
+                    names: list[str]) -> dict[str, float]:
+    """Linearised 1-sd uncertainty of least-squares parameters fitted in log space.
+
+    cov(ln p) = s^2 (J^T J)^-1 with s^2 = |r|^2 / (m - n), as if the m residuals were
+    independent with equal variance (neighbouring skin nodes are correlated, so this is a
+    lower bound); sd(p) = p sd(ln p).
+
+    Parameters
+    ----------
+    J : (m, n) Jacobian of the residuals (mm) with respect to ln p
+    r : (m,) residuals at the solution, mm
+    p : (n,) parameters at the solution (their own units)
+    names : the n parameter paths
+
+    Returns
+    -------
+    dict
+        path -> sd in the parameter's unit; empty when m <= n or J^T J is singular.
+    """
+    J, r = np.asarray(J, float), np.asarray(r, float)
+    m, n = J.shape
+    if m <= n:
+        return {}
+    try:
+        cov = float(r @ r) / (m - n) * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return {}
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    return {k: float(v) for k, v in zip(names, np.asarray(p, float) * sd)}
 
 
 def _summary(history: list[dict], method: str) -> dict:

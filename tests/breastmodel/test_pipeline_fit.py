@@ -176,3 +176,33 @@ def test_least_squares_keeps_going_through_a_parameter_of_exactly_one(monkeypatc
                                work_dir=tmp_path / "w",
                                x0={"materials.breast_left.E": 1.0, "effects.skin.E": 1.0})
     assert res["best"]["params"]["materials.breast_left.E"] == pytest.approx(E_OPT, rel=2e-3)
+
+
+def test_least_squares_uncertainty_matches_the_linear_model(monkeypatch, tmp_path):
+    """Residuals linear in ln p plus seeded noise: the reported 1-sd equals p sqrt(s^2
+    (A^T A)^-1) of the exact linear model, and the truth lies within 3 sd of the estimate."""
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(300, 2))
+    noise = 0.3 * rng.normal(size=300)
+
+    def evaluate(params, problem_dir, settings, residuals=False):
+        z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
+                      math.log(params["effects.skin.E"] / S_OPT)])
+        r = A @ z + noise
+        return {"objective": float(np.mean(np.abs(r))), "mhd_mm": {"prone": 0.0},
+                "forward_solves": 4, "error": None, "residual": {"prone": r.tolist()}}
+
+    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=40,
+                               work_dir=tmp_path / "w",
+                               x0={"materials.breast_left.E": 2.5, "effects.skin.E": 2.0})
+    unc = res["uncertainty"]
+    assert set(unc) == set(PARAMS)
+    z_hat, *_ = np.linalg.lstsq(A, -noise, rcond=None)  # the exact least-squares optimum
+    r = A @ z_hat + noise
+    sd_ln = np.sqrt(np.diag(float(r @ r) / (300 - 2) * np.linalg.inv(A.T @ A)))
+    p_hat = np.array([E_OPT, S_OPT]) * np.exp(z_hat)
+    for k, (name, truth) in enumerate([("materials.breast_left.E", E_OPT),
+                                       ("effects.skin.E", S_OPT)]):
+        assert unc[name] == pytest.approx(p_hat[k] * sd_ln[k], rel=0.02)
+        assert abs(res["best"]["params"][name] - truth) < 3 * unc[name]
