@@ -172,6 +172,7 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
     """Segmentation and registration QA: figures and tables."""
     import SimpleITK as sitk
 
+    from imaging.io import read_volume
     from imaging.qa import tissue_volumes_ml
 
     parts = ["<h2 id='segmentation'>Segmentation QA</h2>",
@@ -184,7 +185,7 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
         if lab_path is None or not lab_path.is_file() or pos not in vols:
             continue
         labels = sitk.ReadImage(str(lab_path))
-        img = sitk.ReadImage(str(vols[pos]))
+        img = read_volume(vols[pos])  # a file or a DICOM series folder
         v = tissue_volumes_ml(labels)
         rows.append([pos, *(v.get(k) for k in ("breast", "muscle", "gland"))])
         parts.append(_img(_segmentation_figure(pos, img, labels, "segmentation"),
