@@ -26,6 +26,8 @@
                                                   frame (the reference's own for it)
 ``<position>.tfm``                                ITK rigid transform, reference -> position
                                                   image (identity for the reference)
+``<position>_labels_in_reference.seg.nrrd``      3D Slicer segmentation: the same label map
+                                                  with named, coloured segments
 ``labels.ctbl``, ``labels_itksnap.txt``           colour tables of the label codes (Slicer,
                                                   ITK-SNAP)
 ``<position>_fiducials.mrk.json``,                detected fiducials in the reference frame
@@ -51,7 +53,8 @@ import numpy as np
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["LABEL_TABLE", "export_images", "write_colour_tables", "write_febio",
-           "write_outputs", "write_position_meshes", "write_vtm"]
+           "write_outputs", "write_position_meshes", "write_slicer_segmentation",
+           "write_vtm"]
 
 _SUMMARY_KEYS = ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm", "median_mm",
                  "mean_pred_to_meas_mm", "mean_meas_to_pred_mm", "n_pred", "n_meas",
@@ -211,6 +214,37 @@ def write_colour_tables(out: Path) -> list[str]:
     return ["labels.ctbl", "labels_itksnap.txt"]
 
 
+def write_slicer_segmentation(labels, path: Path) -> Path:
+    """Write a label map as a 3D Slicer segmentation (``.seg.nrrd``): one segment per label
+    code present (names and colours of :data:`LABEL_TABLE`), read by Slicer as named,
+    coloured segments and by any NRRD reader as the plain label map.
+
+    Parameters
+    ----------
+    labels : SimpleITK.Image, integer label map (0 background)
+    path : output file, ending in ``.seg.nrrd``
+    """
+    import SimpleITK as sitk
+
+    img = sitk.Cast(labels, sitk.sitkUInt8)
+    codes = [int(c) for c in np.unique(sitk.GetArrayViewFromImage(img)) if c > 0]
+    size = img.GetSize()
+    extent = " ".join(f"0 {n - 1}" for n in size)
+    img.SetMetaData("Segmentation_MasterRepresentation", "Binary labelmap")
+    img.SetMetaData("Segmentation_ContainedRepresentationNames", "Binary labelmap|")
+    img.SetMetaData("Segmentation_ReferenceImageExtentOffset", "0 0 0")
+    for i, c in enumerate(codes):
+        name, rgb = LABEL_TABLE.get(c, (f"label_{c}", (128, 128, 128)))
+        for key, value in (("ID", f"Segment_{c}"), ("Name", name),
+                           ("Color", " ".join(f"{v / 255:.4f}" for v in rgb)),
+                           ("LabelValue", str(c)), ("Layer", "0"), ("Extent", extent)):
+            img.SetMetaData(f"Segment{i}_{key}", value)
+    tmp = path.with_name(f".{path.name.removesuffix('.seg.nrrd')}.tmp.seg.nrrd")
+    sitk.WriteImage(img, str(tmp), useCompression=True)
+    os.replace(tmp, path)
+    return path
+
+
 def export_images(out: Path, register_dir: Path, reference: str,
                   positions) -> dict[str, Any]:
     """Copy the registered volumes, label maps and transforms out of the register stage,
@@ -231,6 +265,7 @@ def export_images(out: Path, register_dir: Path, reference: str,
     """
     import SimpleITK as sitk
 
+    from breastmodel.config import write_atomic
     from imaging.markups import write_markups
     from registration.transforms import read_transform, transform_points
 
@@ -243,6 +278,9 @@ def export_images(out: Path, register_dir: Path, reference: str,
         _copy(register_dir / ("reference.nii.gz" if ref else vol), out / vol)
         _copy(register_dir / ("reference_labels.nii.gz" if ref else lab), out / lab)
         files["volumes"][pos], files["labels"][pos] = vol, lab
+        seg = out / lab.replace(".nii.gz", ".seg.nrrd")
+        write_slicer_segmentation(sitk.ReadImage(str(out / lab)), seg)
+        files.setdefault("segmentations", {})[pos] = seg.name
         tfm = out / f"{pos}.tfm"
         if ref:
             tmp = tfm.with_name(f".{tfm.name}.tmp.tfm")
@@ -265,8 +303,6 @@ def export_images(out: Path, register_dir: Path, reference: str,
     rows = ["position,label,x,y,z"] + [
         f"{pos},{k},{v[0]:.4f},{v[1]:.4f},{v[2]:.4f}"
         for pos, pts in files["fiducials"].items() for k, v in pts.items()]
-    from breastmodel.config import write_atomic
-
     write_atomic(out / "fiducials_in_reference.csv", "\n".join(rows) + "\n")
     files["colour_tables"] = write_colour_tables(out)
     files["registration"] = reg
@@ -302,7 +338,7 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
         "regions", "landmarks"}}, "stress_free": {...}}).
     """
     from breastmodel.config import write_json
-    from breastmodel.pipeline.problem import load_problem
+    from breastmodel.pipeline.problem import load_problem, mesh_of
     from breastmodel.pipeline.report import write_report
     from meshing.export import write_ply
 
@@ -325,8 +361,6 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
         names = write_position_meshes(out, problem, pos, pred)
         blocks[pos] = {"mesh": names["mesh"], "predicted skin": names["skin"],
                        "measured skin": names["measured_skin"]}
-        from breastmodel.pipeline.problem import mesh_of
-
         x, nodes = pred["x"], pred["skin_nodes"]
         faces = np.asarray(mesh_of(problem, len(x)).face_sets["skin"])
         remap = np.full(len(x), -1, np.int64)

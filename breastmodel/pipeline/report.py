@@ -351,6 +351,7 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
     files = ["run.vtm (ParaView)", *(f for b in blocks.values() for f in b.values())]
     if images:
         files += [*images["volumes"].values(), *images["labels"].values(),
+                  *(images.get("segmentations") or {}).values(),
                   *images["transforms"].values(), *images.get("colour_tables", []),
                   *(f"{p}_fiducials.mrk.json" for p, v in images["fiducials"].items() if v)]
     if blocks:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import shutil
 from pathlib import Path
 
@@ -290,6 +291,12 @@ def test_run_opens_in_slicer(first_run):
             assert im.GetOrigin() == pytest.approx(ref_img.GetOrigin())
         codes = set(np.unique(sitk.GetArrayViewFromImage(lab)).tolist())
         assert {1, 2} <= codes <= set(table)
+        seg = sitk.ReadImage(str(out / f"{pos}_labels_in_reference.seg.nrrd"))
+        np.testing.assert_array_equal(sitk.GetArrayViewFromImage(seg),
+                                      sitk.GetArrayViewFromImage(lab))
+        names = {int(seg.GetMetaData(k.replace("_Name", "_LabelValue"))): seg.GetMetaData(k)
+                 for k in seg.GetMetaDataKeys() if re.fullmatch(r"Segment\d+_Name", k)}
+        assert names == {c: table[c] for c in codes - {0}}
         tfm = sitk.ReadTransform(str(out / f"{pos}.tfm"))
         params = np.asarray(tfm.GetParameters())
         if pos == ref:
