@@ -30,6 +30,7 @@ def subject_maker(*, size: str, febio: str | None, cache: Path):
     """``make(name, folder)`` for :func:`breastmodel.validation.run_suite`: the subject of
     seed ``int(name.split('-')[-1])`` from the phantom family, with its FEBio truth."""
     from breastmodel.phantom.family import draw_spec, make_subject, spec_label
+
     from breastmodel.phantom.writer import truth_folder
 
     def make(name: str, folder: Path):
@@ -67,6 +68,7 @@ def main(argv=None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "2")
 
     from breastmodel.febio import find_febio
+
     from breastmodel.validation import format_table, run_suite
 
     try:

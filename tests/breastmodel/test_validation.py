@@ -7,7 +7,13 @@ import numpy as np
 import pytest
 
 from breastmodel.validation import (
-    ARMS, TARGETS, Target, check_targets, format_table, run_suite, split_positions,
+    ARMS,
+    TARGETS,
+    Target,
+    check_targets,
+    format_table,
+    run_suite,
+    split_positions,
     suite_config,
 )
 
