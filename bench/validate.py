@@ -16,7 +16,6 @@ back; truths and pipeline stages are cached too).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -24,29 +23,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def subject_maker(*, size: str, febio: str | None, cache: Path):
-    """``make(name, folder)`` for :func:`breastmodel.validation.run_suite`: the subject of
-    seed ``int(name.split('-')[-1])`` from the phantom family, with its FEBio truth."""
-    from breastmodel.phantom.family import draw_spec, make_subject, spec_label
-
-    from breastmodel.phantom.writer import truth_folder
-
-    def make(name: str, folder: Path):
-        seed = int(name.rsplit("-", 1)[-1])
-        spec = draw_spec(seed, size=size)
-        done = folder / ".made"
-        t0 = time.perf_counter()
-        if not done.is_file():
-            make_subject(spec, folder, truth_solver="febio", febio=febio, cache_dir=cache,
-                         progress=False)
-            done.write_text(json.dumps({"seed": seed}))
-        return folder, truth_folder(folder), {
-            "seed": seed, "label": spec_label(spec), "spec": spec.to_dict(),
-            "make_s": round(time.perf_counter() - t0, 2)}
-
-    return make
 
 
 def main(argv=None) -> int:
@@ -69,7 +45,7 @@ def main(argv=None) -> int:
 
     from breastmodel.febio import find_febio
 
-    from breastmodel.validation import format_table, run_suite
+    from breastmodel.validation import family_maker, format_table, run_suite
 
     try:
         febio = str(find_febio(args.febio))
@@ -79,7 +55,7 @@ def main(argv=None) -> int:
     seeds = ([int(s) for s in args.seeds.split(",")] if args.seeds
              else list(range(args.subjects)))
     names = [f"{args.size}-{s:03d}" for s in seeds]
-    make = subject_maker(size=args.size, febio=febio, cache=args.work / "truth_cache")
+    make = family_maker(size=args.size, febio=febio, cache=args.work / "truth_cache")
     t0 = time.perf_counter()
 
     def show(res):

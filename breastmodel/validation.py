@@ -30,7 +30,7 @@ import numpy as np
 log = logging.getLogger("breastmodel.validation")
 
 __all__ = ["ARMS", "TARGETS", "Target", "suite_config", "evaluate_subject", "check_targets",
-           "summary_rows", "format_table", "run_suite"]
+           "summary_rows", "format_table", "run_suite", "family_maker"]
 
 #: The arms each subject runs in.
 ARMS = ("pipeline", "truth_labels")
@@ -371,6 +371,31 @@ def run_suite(names: Sequence[str], make: Callable[[str, Path], tuple[Path, Path
     return results
 
 
+def family_maker(*, size: str = "small", febio: str | None = None,
+                 cache: str | Path | None = None, **overrides):
+    """``make(name, folder)`` for :func:`run_suite`: the subject of seed
+    ``int(name.rsplit('-', 1)[-1])`` drawn from the phantom family
+    (:func:`breastmodel.phantom.family.draw_spec` with ``overrides``), its truth computed by
+    FEBio; a subject made before (marker ``folder/.made``) is reused."""
+    from breastmodel.phantom.family import draw_spec, make_subject, spec_label
+    from breastmodel.phantom.writer import truth_folder
+
+    def make(name: str, folder: Path):
+        seed = int(name.rsplit("-", 1)[-1])
+        spec = draw_spec(seed, size=size, **overrides)
+        done = Path(folder) / ".made"
+        t0 = time.perf_counter()
+        if not done.is_file():
+            make_subject(spec, folder, truth_solver="febio", febio=febio, cache_dir=cache,
+                         progress=False)
+            done.write_text(json.dumps({"seed": seed}))
+        return Path(folder), truth_folder(folder), {
+            "seed": seed, "label": spec_label(spec), "spec": spec.to_dict(),
+            "make_s": round(time.perf_counter() - t0, 2)}
+
+    return make
+
+
 # ------------------------------------------------------------------------------ tables
 
 def _fmt(v, digits=2) -> str:
@@ -379,6 +404,13 @@ def _fmt(v, digits=2) -> str:
     if isinstance(v, float):
         return f"{v:.{digits}f}"
     return str(v)
+
+
+def _abbr(position: str) -> str:
+    """Short position name for tables: initials of its words plus any number
+    (``supine_tilted_30`` -> ``st30``, ``prone`` -> ``p``)."""
+    parts = position.split("_")
+    return "".join(p if p.isdigit() else p[0] for p in parts if p)
 
 
 def summary_rows(res: Mapping[str, Any]) -> dict[str, str]:
@@ -398,13 +430,13 @@ def summary_rows(res: Mapping[str, Any]) -> dict[str, str]:
             "subject": res["subject"], "kind": str(info.get("label", "")), "arm": arm,
             "dice b/m": " ".join(f"{v.get('breast', np.nan):.3f}/{v.get('muscle', np.nan):.3f}"
                                  for v in dice.values()) or "-",
-            "TRE mm": " ".join(f"{p[:6]} {v['tre_max_mm']:.2f}" for p, v in reg.items()) or "-",
+            "TRE mm": " ".join(f"{_abbr(p)} {v['tre_max_mm']:.2f}" for p, v in reg.items()) or "-",
             "rot deg": " ".join(f"{v['rotation_error_deg']:.2f}" for v in reg.values()) or "-",
             "E fit/truth kPa": (f"{E:.3f}/" if E is not None else "-/")
                                + "/".join(f"{v:.2f}" for v in truth.values()),
-            "MHD cal mm": " ".join(f"{p[:6]} {mhd[p]:.2f}" for p in a.get("calibrate", [])
+            "MHD cal mm": " ".join(f"{_abbr(p)} {mhd[p]:.2f}" for p in a.get("calibrate", [])
                                    if mhd.get(p) is not None) or "-",
-            "MHD held mm": " ".join(f"{p[:6]} {mhd[p]:.2f}" for p in a.get("held_out", [])
+            "MHD held mm": " ".join(f"{_abbr(p)} {mhd[p]:.2f}" for p in a.get("held_out", [])
                                     if mhd.get(p) is not None) or "-",
             "time s": " ".join(f"{k[:4]} {v:.0f}" for k, v in times.items()),
             "error": (a.get("error") or "")[:90],
