@@ -57,7 +57,7 @@ def test_targets_verdicts():
 
 
 def test_run_suite_records_failures_and_resumes(tmp_path, monkeypatch):
-    import breastmodel.validation as v
+    import breastmodel.validation.suite as v
 
     calls = []
 
@@ -86,7 +86,7 @@ def test_run_suite_records_failures_and_resumes(tmp_path, monkeypatch):
 
 
 def test_figures_from_an_arm_result():
-    from breastmodel.validation import _figures
+    from breastmodel.validation import arm_figures as _figures
 
     r = {"error": None, "dice": {"prone": {"breast": 0.96, "muscle": 0.91},
                                  "supine": {"breast": 0.94, "muscle": 0.93}},
