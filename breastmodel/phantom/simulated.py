@@ -63,7 +63,7 @@ def stress_free_labels(anatomy: Anatomy, *, voxel_size: float = 1.0):
     grid = Grid.from_box(anatomy.fov_min, anatomy.fov_max, voxel_size)
     tissue = voxelize(anatomy, grid)
     img = sitk.GetImageFromArray(tissue.seg)
-    img.SetSpacing((grid.spacing,) * 3)
+    img.SetSpacing(tuple(map(float, grid.spacing_xyz)))
     img.SetOrigin(grid.origin)
     return img
 
