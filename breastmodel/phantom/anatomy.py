@@ -137,7 +137,7 @@ class Superellipsoid:
 
         Closed form without shear; with shear, the level function along the line is convex in
         y, so its minimum is found by golden-section search and the two crossings of 1 by
-        bisection (to ~1e-9 of the semi-axis).
+        bisection (to ~1e-10 of the semi-axis).
         """
         c, r = self.center, self.radii
         x, z = np.asarray(x, float), np.asarray(z, float)
@@ -154,7 +154,7 @@ class Superellipsoid:
 
         lo, hi = np.full(x.shape, -float(r[1])), np.full(x.shape, float(r[1]))
         g = (np.sqrt(5.0) - 1.0) / 2.0
-        for _ in range(80):
+        for _ in range(50):
             m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
             left = f(m1) < f(m2)
             hi, lo = np.where(left, m2, hi), np.where(left, lo, m1)
@@ -162,7 +162,7 @@ class Superellipsoid:
         hit = f(tmin) <= 1.0
 
         def crossing(inside, outside):
-            for _ in range(60):
+            for _ in range(45):
                 mid = 0.5 * (inside + outside)
                 ok = f(mid) <= 1.0
                 inside, outside = np.where(ok, mid, inside), np.where(ok, outside, mid)
