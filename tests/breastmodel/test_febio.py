@@ -198,3 +198,68 @@ def test_tension_field_skin_needs_approximate(tmp_path):
     with pytest.raises(FebioUnsupported, match="'skin'.*wrinkling.*approximate=True"):
         feb_text(model)
     assert "approximation: effect 'skin'" in feb_text(model, approximate=True)
+
+
+def layered_block(split: bool):
+    """A 20 mm cube: muscle (region 2) below z = -10 held at its bottom face, breast (region 1)
+    above, face set ``interface`` between them (normal from muscle into breast); ``split``
+    duplicates the interface nodes so that the breast may slide."""
+    from mechanics.effects._interface import split_interface
+
+    m = box((4, 4, 4), size=(20.0, 20.0, 20.0), origin=(-10.0, -10.0, -20.0))
+    zc = m.nodes[m.tets].mean(axis=1)[:, 2]
+    region = np.where(zc < -10.0, 2, 1)
+    faces = boundary_faces(m.tets[region == 2])
+    interface = faces[np.all(np.isclose(m.nodes[faces, 2], -10.0), axis=1)]
+    mesh = Mesh(m.nodes, m.tets, region, node_sets={"fixed": m.node_sets["zmin"]},
+                face_sets={"interface": interface})
+    return split_interface(mesh) if split else mesh
+
+
+def layered_model(mesh, direction, **effects):
+    return build_model(mesh, {1: {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
+                              2: {"name": "neo_hookean", "E": 10.0, "nu": 0.49}},
+                       {"gravity": {"direction": direction}, "fixed": {"node_set": "fixed"},
+                        **effects}, formulation="standard")
+
+
+def top_centre(mesh):
+    return int(np.argmin(np.linalg.norm(mesh.nodes - [0.0, 0.0, 0.0], axis=1)))
+
+
+def test_tied_split_interface_as_tied_contact(febio, tmp_path):
+    """Breast bonded to the muscle through a split interface, gravity tilted: FEBio's
+    tied-elastic and our tie springs (both penalty 1000 kPa/mm) against the conforming mesh."""
+    direction = (1.0, 0.0, -1.0)
+    conf = layered_model(layered_block(False), direction)
+    ref = solve(conf, options=SolverOptions(tol=1e-10)).u[top_centre(conf.mesh)]
+    model = layered_model(layered_block(True), direction, tied={})
+    top = top_centre(model.mesh)
+    ours = solve(model, options=SolverOptions(tol=1e-10)).u[top]
+    run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet4", etol=1e-10)
+    print(f"top centre: conforming {ref}, ours tied {ours}, FEBio tied {run.displacement[top]}")
+    assert run.converged
+    scale = np.linalg.norm(ref)
+    assert np.linalg.norm(ours - ref) < 0.01 * scale
+    assert np.linalg.norm(run.displacement[top] - ref) < 0.01 * scale
+
+
+def test_sliding_is_written_as_sliding_elastic_only_when_allowed():
+    """Sliding is always an approximation in FEBio (its own contact points and edges; with
+    friction no tension, another stick stiffness). Not run in FEBio here: on this cube, where
+    the breast rests on the contact alone, FEBio's sliding-elastic diverged from the first
+    iteration (singular: no contact stiffness at zero gap), with and without friction, penalty
+    or augmented Lagrangian, small offsets, either face orientation."""
+    import xml.etree.ElementTree as ET
+
+    model = layered_model(layered_block(True), (1.0, 0.0, -4.0), sliding={"friction": 0.5})
+    with pytest.raises(FebioUnsupported, match="'sliding'.*separate"):
+        feb_text(model)
+    root = ET.fromstring(feb_text(model, approximate=True))
+    (c,) = root.findall("./Contact/contact")
+    assert c.get("type") == "sliding-elastic"
+    assert float(c.find("fric_coeff").text) == 0.5 and c.find("tension").text == "0"
+    pair = root.find(f"./Mesh/SurfacePair[@name='{c.get('surface_pair')}']")
+    prim = root.find(f"./Mesh/Surface[@name='{pair.find('primary').text}']")
+    first = [int(v) - 1 for v in prim[0].text.split(",")]
+    assert first == model.mesh.face_sets["interface"][0][::-1].tolist()  # out of the breast
