@@ -263,3 +263,33 @@ def test_sliding_is_written_as_sliding_elastic_only_when_allowed():
     prim = root.find(f"./Mesh/Surface[@name='{pair.find('primary').text}']")
     first = [int(v) - 1 for v in prim[0].text.split(",")]
     assert first == model.mesh.face_sets["interface"][0][::-1].tolist()  # out of the breast
+
+
+def test_cache_computes_a_truth_once(febio, tmp_path):
+    model, bottom = hanging_block()
+    first = solve_with_febio(model, work_dir=tmp_path / "a", febio=febio, element="tet4",
+                             cache_dir=tmp_path / "cache")
+    again = solve_with_febio(model, work_dir=tmp_path / "b", febio=febio, element="tet4",
+                             cache_dir=tmp_path / "cache")
+    assert not first.cached and again.cached and not (tmp_path / "b").exists()
+    assert np.array_equal(first.displacement, again.displacement) and again.converged
+    assert [p.suffix for p in (tmp_path / "cache").iterdir()] == [".npz"]  # no temp left
+    other = solve_with_febio(model, work_dir=tmp_path / "c", febio=febio, element="tet4",
+                             cache_dir=tmp_path / "cache", steps=2)
+    assert not other.cached  # another .feb text, another entry
+
+
+def test_mesh_export_runs_in_febio(febio, tmp_path):
+    """``breastmodel mesh``'s mesh.feb (every named set, placeholder materials, gravity,
+    'fixed' held) is a valid FEBio model."""
+    from breastmodel.febio import write_mesh_feb
+
+    mesh = layered_block(False)
+    mesh = Mesh(mesh.nodes, mesh.tets, mesh.region, node_sets=mesh.node_sets,
+                face_sets={**mesh.face_sets, "skin": boundary_faces(mesh.tets)[:5]},
+                node_pairs={"ligament_medial": np.array([[0, 5], [1, 6]])})
+    path = write_mesh_feb(mesh, tmp_path / "mesh.feb")
+    run = run_febio(path.read_text(encoding="latin-1"), work_dir=tmp_path / "run", febio=febio,
+                    timeout_s=120)
+    assert run.converged and run.displacement.shape == (mesh.n_nodes, 3)
+    assert run.displacement[:, 2].min() < 0.0  # it sags under gravity
