@@ -179,13 +179,22 @@ def run_suite(names: Sequence[str], make: Callable[[str, Path], tuple[Path, Path
     return results
 
 
+def spec_label(spec) -> str:
+    """A short description of a family subject for tables: field of view, cup, voxels,
+    contrast, SNR, tilt and hidden physics (``slab C 0.5x0.5x0.6 t1-fs snr22 t30 bulk``)."""
+    vox = "x".join(f"{v:g}" for v in spec.voxel_size)
+    tilt = next((p.rsplit("_", 1)[-1] for p in spec.positions if "tilted" in p), "-")
+    return (f"{spec.fov} {spec.cup} {vox} {spec.contrast}{'-fs' if spec.fat_suppressed else ''}"
+            f" snr{spec.snr:.0f} t{tilt} {spec.physics}")
+
+
 def family_maker(*, size: str = "small", febio: str | None = None,
                  cache: str | Path | None = None, **overrides):
     """``make(name, folder)`` for :func:`run_suite`: the subject of seed
     ``int(name.rsplit('-', 1)[-1])`` drawn from the phantom family
     (:func:`breastmodel.phantom.family.draw_spec` with ``overrides``), its truth computed by
     FEBio; a subject made before (marker ``folder/.made``) is reused."""
-    from breastmodel.phantom.family import draw_spec, make_subject, spec_label
+    from breastmodel.phantom.family import draw_spec, make_subject
     from breastmodel.phantom.writer import truth_folder
 
     def make(name: str, folder: Path):
