@@ -6,7 +6,7 @@ each FEBio element (tet4, ut4, tet10) prints and writes the tip displacement, FE
 time and iterations, and our solver's tip for "anp" and "standard".
 
 Usage: ``python bench/febio_hemisphere.py [--laws neo_hookean,gent] [--elements tet4,ut4,tet10]
-[--threads 1] [--out bench/results/febio_hemisphere.json]``. UT4 is slow in FEBio (its
+[--threads 1] [--steps 10] [--out bench/results/febio_hemisphere.json]``. UT4 is slow in FEBio (its
 stiffness costs about 8 s per evaluation on 20k tets, 1 thread), so a full run takes long.
 """
 
@@ -52,6 +52,7 @@ def main(argv=None) -> int:
     ap.add_argument("--elements", default="tet4,ut4,tet10")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--solver", default="newton", choices=("newton", "bfgs"))
+    ap.add_argument("--steps", type=int, default=10, help="load steps in FEBio (default 10)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" /
                     "febio_hemisphere.json")
     args = ap.parse_args(argv)
@@ -71,11 +72,12 @@ def main(argv=None) -> int:
             model, tip = model_for(args.mesh, law, "anp")
             with tempfile.TemporaryDirectory() as work:
                 run = solve_with_febio(model, work_dir=work, element=element,
-                                       threads=args.threads, solver=args.solver)
+                                       threads=args.threads, solver=args.solver,
+                                       steps=args.steps)
             t = float(np.linalg.norm(run.displacement[tip]))
             row = {"code": "febio", "law": law, "element": element, "mesh": args.mesh.name,
                    "tip_mm": t, "wall_s": round(run.wall_s, 2), "iterations": run.iterations,
-                   "threads": args.threads, "solver": args.solver,
+                   "threads": args.threads, "solver": args.solver, "steps": args.steps,
                    "converged": run.converged, "vs_ours_anp": t / ours - 1.0}
             print(json.dumps(row), flush=True)
             rows.append(row)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import platform
 import sys
@@ -17,6 +18,17 @@ _TRACKED_PACKAGES = (
     "breastmodel", "numpy", "scipy", "SimpleITK", "scikit-image", "opencv-python-headless",
     "pymeshlab", "pytetwild", "open3d-cpu", "meshio", "dask", "pypardiso",
 )
+
+
+def _umask() -> int:
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _umask()
 
 
 class ConfigError(ValueError):
@@ -53,12 +65,31 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def write_atomic(path: str | Path, text: str) -> None:
-    """Write text so that a reader never sees a half-written file."""
+def write_atomic(path: str | Path, data: str | bytes) -> Path:
+    """Write text or bytes so that a reader never sees a half-written file.
+
+    The data goes to a uniquely named temporary file in the target folder (two writers of
+    one path never share it), is flushed to disk, and replaces ``path`` in one rename; on any
+    failure the temporary file is removed and ``path`` is left as it was.
+    """
+    import os
+    import tempfile
+
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
+    raw = data.encode() if isinstance(data, str) else bytes(data)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
+        with os.fdopen(fd, "wb") as f:
+            f.write(raw)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    return path
 
 
 def write_json(path: str | Path, data: Any) -> None:

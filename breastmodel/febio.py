@@ -110,7 +110,8 @@ def _env(threads: int) -> dict[str, str]:
     return env
 
 
-_ERROR_RE = re.compile(r"(error|failed|invalid|unknown|not found|negative jacobian)", re.I)
+_ERROR_RE = re.compile(r"(error|failed|invalid|unknown|not found|cannot|negative jacobian)",
+                       re.I)
 
 
 def _error_lines(log: str, limit: int = 12) -> list[str]:

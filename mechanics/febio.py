@@ -72,16 +72,19 @@ def _ids(a) -> str:
 
 
 def _param_lines(params: Mapping[str, Any], indent: str) -> list[str]:
+    """XML lines of parameters: a key may carry attributes (``'force type="point"'``); a value
+    is a number, a string, or a list of pre-formatted child lines."""
     out = []
     for k, v in params.items():
+        tag = k.split()[0]
         if isinstance(v, str):
-            out.append(f"{indent}<{k}>{v}</{k}>")
-        elif isinstance(v, list | tuple):  # pre-formatted child lines
+            out.append(f"{indent}<{k}>{v}</{tag}>")
+        elif isinstance(v, list | tuple):
             out.append(f"{indent}<{k}>")
             out += [f"{indent}\t{line}" for line in v]
-            out.append(f"{indent}</{k}>")
+            out.append(f"{indent}</{tag}>")
         else:
-            out.append(f"{indent}<{k}>{_num(v)}</{k}>")
+            out.append(f"{indent}<{k}>{_num(v)}</{tag}>")
     return out
 
 

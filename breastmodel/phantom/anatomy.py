@@ -6,7 +6,10 @@ made of nested layers (skin, subcutaneous fat, muscle, thorax interior); each br
 superellipsoid centred on the chest surface (its anterior part protrudes, the rest lies inside
 the torso where the layers take priority), with an inner glandular superellipsoid and a nipple.
 Skin markers are small spheres just outside the skin on stiff zones (sternum, inframammary
-folds), as in the paper.
+folds), as in the paper. With ``chest_wall="slab"`` the torso is replaced by a flat muscle slab
+(posterior face at y = 0, free sides, air behind and around it) carrying the two breasts, with
+no skin outside the breasts: a chest wall whose muscle meets air, as in a dedicated breast coil
+whose field of view ends at the pectoralis.
 
 The anatomy is a small constructive description made of primitives that can both test point
 membership (for voxelisation) and give exact chord intervals along y (for reference volumes
@@ -21,7 +24,7 @@ import numpy as np
 
 __all__ = [
     "AIR", "FAT", "MUSCLE", "GLAND", "SKIN", "MARKER", "THORAX", "TISSUE_NAMES",
-    "Breast", "Anatomy", "EllipticCylinderZ", "Superellipsoid",
+    "Breast", "Anatomy", "EllipticCylinderZ", "Superellipsoid", "Box",
     "reference_volumes", "segmentation_codes",
 ]
 
@@ -64,12 +67,41 @@ class EllipticCylinderZ:
 
 
 @dataclass(frozen=True)
+class Box:
+    """Axis-aligned box [lo, hi] (mm)."""
+
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+
+    def contains(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """Membership of points given by coordinate arrays (mm)."""
+        lo, hi = [float(v) for v in self.lo], [float(v) for v in self.hi]
+        return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (
+            z <= hi[2])
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounding box (lo, hi), (3,) mm each."""
+        return np.asarray(self.lo, float), np.asarray(self.hi, float)
+
+    def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty."""
+        ok = (x >= self.lo[0]) & (x <= self.hi[0]) & (z >= self.lo[2]) & (z <= self.hi[2])
+        return (np.where(ok, self.lo[1], np.nan), np.where(ok, self.hi[1], np.nan))
+
+
+@dataclass(frozen=True)
 class Superellipsoid:
-    """|u|^e + |v|^e + |w|^e <= 1 with u = (x - cx)/rx etc. (mm); e = 2 is an ellipsoid."""
+    """|u|^e + |v|^e + |w|^e <= 1 with u = (x - cx)/rx, v = (y - cy)/ry and
+    w = (z - cz - shear (y - cy))/rz (mm); e = 2 is an ellipsoid.
+
+    ``shear`` (dimensionless, mm of z per mm of y) tilts the shape's axis in the y-z plane: a
+    breast with ptosis has ``shear > 0``, so its anterior part (y < cy) hangs lower.
+    """
 
     center: tuple[float, float, float]
     radii: tuple[float, float, float]
     exponent: float = 2.0
+    shear: float = 0.0
 
     def _power(self, t: np.ndarray) -> np.ndarray:
         if self.exponent == 2.0:
@@ -82,19 +114,63 @@ class Superellipsoid:
         c, r = [float(v) for v in self.center], [float(v) for v in self.radii]
         s = self._power((x - c[0]) * (1.0 / r[0]))
         s += self._power((y - c[1]) * (1.0 / r[1]))
-        s += self._power((z - c[2]) * (1.0 / r[2]))
+        if self.shear:
+            s += self._power((z - c[2] - float(self.shear) * (y - c[1])) * (1.0 / r[2]))
+        else:
+            s += self._power((z - c[2]) * (1.0 / r[2]))
         return s <= 1.0
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounding box (lo, hi), (3,) mm each (the shear widens its z extent)."""
+        c, r = np.asarray(self.center, float), np.asarray(self.radii, float)
+        h = r.copy()
+        h[2] += abs(float(self.shear)) * r[1]
+        return c - h, c + h
 
     @property
     def z_range(self) -> tuple[float, float]:
-        return (self.center[2] - self.radii[2], self.center[2] + self.radii[2])
+        lo, hi = self.bounds()
+        return (float(lo[2]), float(hi[2]))
 
     def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty."""
+        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty.
+
+        Closed form without shear; with shear, the level function along the line is convex in
+        y, so its minimum is found by golden-section search and the two crossings of 1 by
+        bisection (to ~1e-10 of the semi-axis).
+        """
         c, r = self.center, self.radii
-        rest = 1.0 - self._power((x - c[0]) / r[0]) - self._power((z - c[2]) / r[2])
-        h = np.where(rest >= 0, r[1] * np.clip(rest, 0, None) ** (1.0 / self.exponent), np.nan)
-        return c[1] - h, c[1] + h
+        x, z = np.asarray(x, float), np.asarray(z, float)
+        if not self.shear:
+            rest = 1.0 - self._power((x - c[0]) / r[0]) - self._power((z - c[2]) / r[2])
+            h = np.where(rest >= 0, r[1] * np.clip(rest, 0, None) ** (1.0 / self.exponent),
+                         np.nan)
+            return c[1] - h, c[1] + h
+        e, sh = float(self.exponent), float(self.shear)
+        a = np.abs((x - c[0]) / r[0]) ** e
+
+        def f(t):  # level along the line at y = cy + t
+            return a + np.abs(t / r[1]) ** e + np.abs((z - c[2] - sh * t) / r[2]) ** e
+
+        lo, hi = np.full(x.shape, -float(r[1])), np.full(x.shape, float(r[1]))
+        g = (np.sqrt(5.0) - 1.0) / 2.0
+        for _ in range(50):
+            m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
+            left = f(m1) < f(m2)
+            hi, lo = np.where(left, m2, hi), np.where(left, lo, m1)
+        tmin = 0.5 * (lo + hi)
+        hit = f(tmin) <= 1.0
+
+        def crossing(inside, outside):
+            for _ in range(45):
+                mid = 0.5 * (inside + outside)
+                ok = f(mid) <= 1.0
+                inside, outside = np.where(ok, mid, inside), np.where(ok, outside, mid)
+            return 0.5 * (inside + outside)
+
+        t_lo = crossing(tmin.copy(), np.full(x.shape, -float(r[1])))
+        t_hi = crossing(tmin.copy(), np.full(x.shape, float(r[1])))
+        return (np.where(hit, c[1] + t_lo, np.nan), np.where(hit, c[1] + t_hi, np.nan))
 
     @property
     def volume(self) -> float:
@@ -125,6 +201,9 @@ class Breast:
         Gland centre anterior shift from the breast centre, as a fraction of ``projection``.
     nipple_radius
         Radius of the spherical nipple centred on the breast tip, mm.
+    ptosis
+        How far the tip hangs below the base centre, mm (the breast's axis is sheared in the
+        y-z plane; 0: the tip is level with the base centre).
     """
 
     center_x: float
@@ -136,6 +215,12 @@ class Breast:
     gland_scale: tuple[float, float, float] = (0.55, 0.45, 0.55)
     gland_offset: float = 0.35
     nipple_radius: float = 4.0
+    ptosis: float = 0.0
+
+    @property
+    def shear(self) -> float:
+        """z drop per mm of anterior projection (dimensionless)."""
+        return float(self.ptosis) / float(self.projection)
 
 
 @dataclass(frozen=True)
@@ -162,6 +247,14 @@ class Anatomy:
     rotation_center
         Centre of the random rigid rotations, mm (the middle of the breast region keeps
         motions from pushing the breasts out of the field of view).
+    chest_wall
+        ``"torso"`` (the layered elliptic torso) or ``"slab"``: a flat muscle slab of
+        ``muscle`` mm between y = -muscle and y = 0 and of half-extent ``slab_half_width``
+        (x) by ``slab_half_height`` (z), air behind and around it, no skin outside the
+        breasts; the torso semi-axes, skin-free layers and subcutaneous fat are then unused
+        (the breast skin keeps ``skin``).
+    slab_half_width, slab_half_height
+        Half-extent of the slab, mm.
     """
 
     torso_half_width: float = 150.0
@@ -187,6 +280,14 @@ class Anatomy:
     fov_min: tuple[float, float, float] = (-160.0, -185.0, -100.0)
     fov_max: tuple[float, float, float] = (160.0, -5.0, 100.0)
     rotation_center: tuple[float, float, float] = (0.0, -100.0, -10.0)
+    chest_wall: str = "torso"
+    slab_half_width: float = 140.0
+    slab_half_height: float = 90.0
+
+    def __post_init__(self):
+        if self.chest_wall not in ("torso", "slab"):
+            raise ValueError(f"phantom: chest_wall must be 'torso' or 'slab', got "
+                             f"{self.chest_wall!r}")
 
     @classmethod
     def small(cls) -> Anatomy:
@@ -225,7 +326,10 @@ class Anatomy:
         )
 
     def chest_surface_y(self, x: float) -> float:
-        """y of the outer (skin) torso surface at lateral position x, mm (anterior side)."""
+        """y of the outer (skin) torso surface at lateral position x, mm (anterior side); the
+        slab's anterior face for ``chest_wall="slab"``."""
+        if self.chest_wall == "slab":
+            return -float(self.muscle)
         a, b = self.torso_half_width, self.torso_half_depth
         return float(-b * np.sqrt(max(0.0, 1.0 - (x / a) ** 2)))
 
@@ -236,21 +340,25 @@ class Anatomy:
             (breast.center_x, cy, breast.center_z),
             (breast.radius_x - shrink, breast.projection - shrink, breast.radius_z - shrink),
             breast.exponent,
+            breast.shear,
         )
 
     def gland_shape(self, breast: Breast) -> Superellipsoid:
-        cy = self.chest_surface_y(breast.center_x) - breast.gland_offset * breast.projection
+        dy = breast.gland_offset * breast.projection
+        cy = self.chest_surface_y(breast.center_x) - dy
         sx, sy, sz = breast.gland_scale
         return Superellipsoid(
-            (breast.center_x, cy, breast.center_z),
+            (breast.center_x, cy, breast.center_z - breast.shear * dy),
             (sx * breast.radius_x, sy * breast.projection, sz * breast.radius_z),
             breast.exponent,
+            breast.shear,
         )
 
     def nipple_tip(self, breast: Breast) -> np.ndarray:
         """Most anterior point of the breast superellipsoid (nipple centre), mm."""
         cy = self.chest_surface_y(breast.center_x)
-        return np.array([breast.center_x, cy - breast.projection, breast.center_z])
+        return np.array([breast.center_x, cy - breast.projection,
+                         breast.center_z - float(breast.ptosis)])
 
     def nipple_shape(self, breast: Breast) -> Superellipsoid:
         r = breast.nipple_radius
@@ -264,6 +372,8 @@ class Anatomy:
 
         def on_skin(x: float, z: float) -> np.ndarray:
             y = self.chest_surface_y(x)
+            if self.chest_wall == "slab":
+                return np.array([x, y - d, z])
             n = np.array([x / a**2, y / b**2, 0.0])
             return np.array([x, y, z]) + d * n / np.linalg.norm(n)
 
@@ -284,12 +394,17 @@ class Anatomy:
     def primitives(self) -> dict[str, EllipticCylinderZ | Superellipsoid]:
         """Every primitive of the constructive description, by name."""
         s, f, m = self.skin, self.subcutaneous_fat, self.muscle
-        prims: dict[str, EllipticCylinderZ | Superellipsoid] = {
-            "torso_outer": self.torso_layer(0.0),
-            "torso_inner": self.torso_layer(s),
-            "muscle_outer": self.torso_layer(s + f),
-            "muscle_inner": self.torso_layer(s + f + m),
-        }
+        prims: dict[str, EllipticCylinderZ | Superellipsoid | Box]
+        if self.chest_wall == "slab":
+            w, h = self.slab_half_width, self.slab_half_height
+            prims = {"slab": Box((-w, -m, -h), (w, 0.0, h))}
+        else:
+            prims = {
+                "torso_outer": self.torso_layer(0.0),
+                "torso_inner": self.torso_layer(s),
+                "muscle_outer": self.torso_layer(s + f),
+                "muscle_inner": self.torso_layer(s + f + m),
+            }
         for side, br in (("left", self.left), ("right", self.right)):
             prims[f"breast_{side}_outer"] = self.breast_shape(br)
             prims[f"breast_{side}_inner"] = self.breast_shape(br, shrink=s)
@@ -329,13 +444,13 @@ class Anatomy:
         zlo, zhi = float(z.min()), float(z.max())
         for names in self._groups(prims):
             shapes = [prims[k] for k in names]
-            if not isinstance(shapes[0], Superellipsoid):
+            if isinstance(shapes[0], EllipticCylinderZ):
                 for k, pr in zip(names, shapes):
                     inside[k] = pr.contains(x, y, z)
                 continue
             # Local shapes: test only the points inside the group's bounding box.
-            lo = np.min([sh.center for sh in shapes] - np.array([sh.radii for sh in shapes]), 0)
-            hi = np.max([sh.center for sh in shapes] + np.array([sh.radii for sh in shapes]), 0)
+            lo = np.min([sh.bounds()[0] for sh in shapes], 0)
+            hi = np.max([sh.bounds()[1] for sh in shapes], 0)
             if hi[2] < zlo or lo[2] > zhi:
                 continue
             sel = (x >= lo[0]) & (x <= hi[0])
@@ -358,16 +473,19 @@ class Anatomy:
             return out
 
         outer = any_of(
-            "torso_outer", "breast_left_outer", "breast_right_outer", "nipple_left", "nipple_right"
+            "torso_outer", "breast_left_outer", "breast_right_outer", "nipple_left",
+            "nipple_right", "slab",
         )
-        inner = any_of("torso_inner", "breast_left_inner", "breast_right_inner")
+        inner = any_of("torso_inner", "breast_left_inner", "breast_right_inner", "slab")
         code = np.full(n, FAT, dtype=np.uint8)
         # Later assignments win: gland < muscle < thorax < skin < air < marker.
         code[any_of("gland_left", "gland_right")] = GLAND
-        code[inside["muscle_outer"]] = MUSCLE
-        code[inside["muscle_inner"]] = THORAX
+        code[any_of("muscle_outer", "slab")] = MUSCLE
+        code[any_of("muscle_inner")] = THORAX
         code[~inner] = SKIN
         code[~outer] = AIR
+        if self.chest_wall == "slab":  # nothing of the breasts lies behind the chest wall
+            code[(y > -float(self.muscle)) & ~any_of("slab")] = AIR
         code[any_of(*(k for k in inside if k.startswith("marker_")))] = MARKER
         return code
 
@@ -375,7 +493,7 @@ class Anatomy:
     def _groups(prims: dict) -> list[list[str]]:
         """Primitives tested together: each torso layer alone, each breast with its inner
         surface, gland and nipple (one bounding box), each marker alone."""
-        groups = [[k] for k in prims if k.startswith(("torso_", "muscle_", "marker_"))]
+        groups = [[k] for k in prims if k.startswith(("torso_", "muscle_", "marker_", "slab"))]
         for side in ("left", "right"):
             groups.append(
                 [k for k in prims if not k.startswith("marker_") and side in k.split("_")]

@@ -10,6 +10,7 @@ back through the solved tet mesh (:class:`~breastmodel.phantom.warp.PullBack`).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -63,7 +64,7 @@ def stress_free_labels(anatomy: Anatomy, *, voxel_size: float = 1.0):
     grid = Grid.from_box(anatomy.fov_min, anatomy.fov_max, voxel_size)
     tissue = voxelize(anatomy, grid)
     img = sitk.GetImageFromArray(tissue.seg)
-    img.SetSpacing((grid.spacing,) * 3)
+    img.SetSpacing(tuple(map(float, grid.spacing_xyz)))
     img.SetOrigin(grid.origin)
     return img
 
@@ -151,8 +152,16 @@ def simulate_positions(
     mesh=None,
     progress: bool = True,
     timings: dict | None = None,
+    truth_solver: str = "ours",
+    febio: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    work_dir: str | Path | None = None,
 ) -> dict[str, SimulatedPosition]:
     """Solve the stress-free anatomy under each position's gravity.
+
+    With ``truth_solver="febio"`` every position is solved by FEBio
+    (:func:`breastmodel.febio.solve_with_febio`, locking-free UT4 tets), an FE code
+    independent of ours; the truth then does not share our solver's errors.
 
     Parameters
     ----------
@@ -171,6 +180,18 @@ def simulate_positions(
         Log each stage at INFO level.
     timings
         Optional dict that receives the wall time (s) of each stage.
+    truth_solver
+        ``"ours"`` (:func:`mechanics.solver.solve`) or ``"febio"``.
+    febio
+        FEBio executable for ``truth_solver="febio"`` (default: ``$FEBIO``, then the
+        known places, see :func:`breastmodel.febio.find_febio`).
+    cache_dir
+        Cache of truths keyed by their inputs: the mesh of this anatomy at this size and
+        label voxel size (``mesh-<sha256>.npz``; fTetWild meshes differ from run to run, so
+        the cache also makes truths repeatable) and FEBio's results per distinct input file
+        (``febio/``). None: no cache.
+    work_dir
+        Folder where FEBio runs (default: a temporary folder).
 
     Returns
     -------
@@ -179,15 +200,38 @@ def simulate_positions(
     Raises
     ------
     RuntimeError
-        A position whose solve does not reach full load (names the position).
+        A position whose solve does not reach full load (names the position), or FEBio
+        missing (says how to give it).
     """
     from mechanics.effects._interface import split_interface
     from mechanics.model import build_model
     from mechanics.solver import SolverError, SolverOptions, solve
 
     tm = truth_model if truth_model is not None else default_truth_model()
+    if truth_solver not in TRUTH_SOLVERS:
+        raise ValueError(f"phantom: unknown truth solver {truth_solver!r}; use one of "
+                         f"{TRUTH_SOLVERS}")
     say = log.info if progress else log.debug
     timings = timings if timings is not None else {}
+    febio_path = _find_febio(febio) if truth_solver == "febio" else None
+    mesh_file = None
+    if mesh is None and cache_dir is not None:
+        from dataclasses import asdict
+
+        from breastmodel.cache import canonical_json
+
+        key = hashlib.sha256(canonical_json({
+            "anatomy": asdict(anatomy), "size_mm": float(tm.mesh_size_mm),
+            "voxel_size": np.broadcast_to(np.asarray(voxel_size, float), (3,)).tolist(),
+            "keep_gland": bool(tm.has_gland), "version": MESH_CACHE_VERSION,
+        }).encode()).hexdigest()
+        mesh_file = Path(cache_dir) / f"mesh-{key}.npz"
+        if mesh_file.exists():
+            from mechanics.mesh import Mesh
+
+            mesh = Mesh.load_npz(mesh_file)
+            timings["mesh_cached"] = True
+            say("phantom: truth mesh from the cache %s", mesh_file)
     if mesh is None:
         import meshing
 
@@ -199,6 +243,9 @@ def simulate_positions(
                                    keep_gland=tm.has_gland)
         timings["mesh"] = time.perf_counter() - t0
         say("phantom: truth mesh %d nodes, %d tets", mesh.n_nodes, mesh.n_tets)
+        if mesh_file is not None:
+            mesh_file.parent.mkdir(parents=True, exist_ok=True)
+            mesh.save_npz(mesh_file)
     solved_mesh = split_interface(mesh) if tm.split_interface else mesh
     materials = {int(k): dict(v) for k, v in tm.materials.items()}
     for gland, breast in ((4, 1), (5, 3)):  # gland tissue inherits its side's bulk law
@@ -214,20 +261,70 @@ def simulate_positions(
         effects["gravity"] = {"direction": g.tolist(), "density": 1000.0, "g": 9.81}
         model = build_model(solved_mesh, materials, effects)
         t0 = time.perf_counter()
-        try:
-            state = solve(model, options=SolverOptions(initial_steps=2))
-        except SolverError as exc:
-            raise RuntimeError(f"phantom: simulation of position {name!r} with truth model "
-                               f"{tm.name!r} failed: {exc}") from None
+        if truth_solver == "febio":
+            u, info = _solve_febio(model, name, tm, febio_path, cache_dir=cache_dir,
+                                   work_dir=work_dir)
+        else:
+            try:
+                state = solve(model, options=SolverOptions(initial_steps=2))
+            except SolverError as exc:
+                raise RuntimeError(f"phantom: simulation of position {name!r} with truth "
+                                   f"model {tm.name!r} failed: {exc}") from None
+            u = state.u
+            info = {"converged": bool(state.converged), "load_steps": state.load_steps,
+                    "newton_iterations": state.newton_iterations}
         dt = time.perf_counter() - t0
         timings[f"solve_{name}"] = dt
-        info = {"converged": bool(state.converged), "load_steps": state.load_steps,
-                "newton_iterations": state.newton_iterations, "wall_time_s": dt,
-                "max_displacement_mm": state.max_displacement()}
-        say("phantom: %s solved in %.1f s, max displacement %.1f mm", name, dt,
-            info["max_displacement_mm"])
-        out[name] = SimulatedPosition(solved_mesh, X, X + state.u, info)
+        info.update(solver=truth_solver, wall_time_s=dt,
+                    max_displacement_mm=float(np.linalg.norm(u, axis=1).max()))
+        say("phantom: %s solved by %s in %.1f s, max displacement %.1f mm", name,
+            truth_solver, dt, info["max_displacement_mm"])
+        out[name] = SimulatedPosition(solved_mesh, X, X + u, info)
     return out
+
+
+#: Truth solvers of :func:`simulate_positions`.
+TRUTH_SOLVERS = ("ours", "febio")
+#: Part of every cached mesh's key: bump when the meshing of phantoms changes.
+MESH_CACHE_VERSION = 1
+
+
+def _find_febio(febio):
+    """The FEBio executable, or a RuntimeError saying how to give one."""
+    try:
+        from breastmodel.febio import find_febio
+    except ImportError as exc:
+        raise RuntimeError(f"phantom: the FEBio truth solver is not available in this build "
+                           f"({exc})") from None
+    try:
+        return find_febio(febio)
+    except Exception as exc:  # noqa: BLE001 - re-raised with the stage and the remedy
+        raise RuntimeError(f"phantom: truth solver 'febio' needs FEBio 4: {exc} (pass "
+                           "--febio PATH or set $FEBIO)") from None
+
+
+def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
+    """Displacement (N, 3) mm and info of one position solved by FEBio."""
+    import tempfile
+
+    from breastmodel.febio import solve_with_febio
+
+    febio_cache = Path(cache_dir) / "febio" if cache_dir is not None else None
+    with tempfile.TemporaryDirectory(prefix=f"febio-{name}-") as tmp:
+        wd = Path(work_dir) / name if work_dir is not None else Path(tmp)
+        try:
+            run = solve_with_febio(model, work_dir=wd, febio=febio_path, element="ut4",
+                                   threads=1, cache_dir=febio_cache)
+        except Exception as exc:  # noqa: BLE001 - re-raised naming the position and model
+            raise RuntimeError(f"phantom: FEBio truth of position {name!r} with truth model "
+                               f"{tm.name!r} failed: {exc}") from None
+    if not run.converged:
+        tail = "\n".join(str(run.log_tail).splitlines()[-8:])
+        raise RuntimeError(f"phantom: FEBio did not converge for position {name!r} with "
+                           f"truth model {tm.name!r}; log tail:\n{tail}")
+    info = {"converged": True, "febio_wall_s": float(run.wall_s),
+            "cached": bool(getattr(run, "cached", False)), "element": "ut4"}
+    return np.asarray(run.displacement, float), info
 
 
 def position_deformation(anatomy: Anatomy, sim: SimulatedPosition, *,
@@ -333,6 +430,9 @@ def make_simulated_phantom(
     mesh_voxel_size: float | None = None,
     progress: bool = True,
     timings: dict | None = None,
+    truth_solver: str = "ours",
+    febio: str | Path | None = None,
+    cache_dir: str | Path | None = None,
     **phantom_options,
 ) -> Path:
     """Write a subject folder whose positions are deformed by simulated gravity.
@@ -355,6 +455,9 @@ def make_simulated_phantom(
         phantom, at most a third of the mesh size).
     timings
         Optional dict receiving the wall time (s) of each stage.
+    truth_solver, febio, cache_dir
+        As for :func:`simulate_positions` (``"ours"`` or ``"febio"``, the FEBio
+        executable, the cache of truths).
     **phantom_options
         Other keywords of :func:`make_phantom` (voxel_size, snr, bias, motion bounds).
 
@@ -376,10 +479,11 @@ def make_simulated_phantom(
         patient_gravity(p)  # unknown names fail before the (long) simulation
     anatomy = anatomy if anatomy is not None else (Anatomy.small() if small else Anatomy())
     timings = timings if timings is not None else {}
-    vs = mesh_voxel_size or min(float(phantom_options.get("voxel_size", 1.0)),
+    vs = mesh_voxel_size or min(float(np.min(phantom_options.get("voxel_size", 1.0))),
                                 tm.mesh_size_mm / 3.0)
     sims = simulate_positions(anatomy, tm, positions, voxel_size=vs, mesh=mesh,
-                              progress=progress, timings=timings)
+                              progress=progress, timings=timings, truth_solver=truth_solver,
+                              febio=febio, cache_dir=cache_dir)
     fields = {p: position_deformation(anatomy, s) for p, s in sims.items()}
     t0 = time.perf_counter()
     make_phantom(out, seed=seed, positions=positions, anatomy=anatomy, progress=progress,

@@ -73,7 +73,10 @@ class TruthModel:
 
     @property
     def has_gland(self) -> bool:
-        """True when the truth gives glandular tissue its own modulus (mesh keeps gland)."""
+        """True when the truth gives glandular tissue its own modulus (mesh keeps gland):
+        through the ``regions`` effect or a material for region gland_left or gland_right."""
+        if any(REGIONS[k] in self.materials for k in ("gland_left", "gland_right")):
+            return True
         return bool(dict(self.effects.get("regions", {"gland": False})).get("gland", True))
 
     @property

@@ -30,23 +30,44 @@ class Grid:
     ----------
     origin : (3,) float
         Physical position of voxel (0, 0, 0)'s centre, mm (x, y, z).
-    spacing : float
-        Isotropic voxel size, mm.
+    spacing : float or (3,) float
+        Voxel size, mm: one number (isotropic) or (x, y, z); see :attr:`spacing_xyz`.
     size : (3,) int
         Number of voxels along x, y, z.
     """
 
     origin: tuple[float, float, float]
-    spacing: float
+    spacing: float | tuple[float, float, float]
     size: tuple[int, int, int]
 
+    def __post_init__(self):
+        s = np.asarray(self.spacing, dtype=float)
+        if s.shape not in ((), (3,)) or not np.all(s > 0):
+            raise ValueError(f"phantom: voxel spacing must be one number or three, all > 0 mm; "
+                             f"got {self.spacing!r}")
+        object.__setattr__(
+            self, "spacing", float(s) if s.shape == () else tuple(map(float, s)))
+
     @classmethod
-    def from_box(cls, box_min, box_max, spacing: float) -> Grid:
-        """Grid whose voxels tile the box [box_min, box_max] (mm) at ``spacing`` mm."""
+    def from_box(cls, box_min, box_max, spacing) -> Grid:
+        """Grid whose voxels tile the box [box_min, box_max] (mm) at ``spacing`` mm (one
+        number, or (x, y, z))."""
         lo, hi = np.asarray(box_min, float), np.asarray(box_max, float)
-        size = np.maximum(1, np.round((hi - lo) / spacing).astype(int))
-        origin = lo + 0.5 * spacing
-        return cls(tuple(map(float, origin)), float(spacing), tuple(map(int, size)))
+        s = np.asarray(spacing, dtype=float)
+        size = np.maximum(1, np.round((hi - lo) / s).astype(int))
+        origin = lo + 0.5 * s
+        sp = float(s) if s.shape == () else tuple(map(float, s))
+        return cls(tuple(map(float, origin)), sp, tuple(map(int, size)))
+
+    @property
+    def spacing_xyz(self) -> np.ndarray:
+        """Voxel size along x, y, z, (3,) float mm."""
+        return np.broadcast_to(np.asarray(self.spacing, dtype=float), (3,)).copy()
+
+    @property
+    def voxel_volume(self) -> float:
+        """Volume of one voxel, mm^3."""
+        return float(np.prod(self.spacing_xyz))
 
     @property
     def shape_zyx(self) -> tuple[int, int, int]:
@@ -56,7 +77,7 @@ class Grid:
         """Physical centres (n, 3) mm of voxels given by flat (z, y, x) C-order indices."""
         k, j, i = np.unravel_index(flat_index, self.shape_zyx)
         ijk = np.stack([i, j, k], axis=1).astype(float)
-        return np.asarray(self.origin) + self.spacing * ijk
+        return np.asarray(self.origin) + self.spacing_xyz * ijk
 
 
 @dataclass(frozen=True)
@@ -125,7 +146,7 @@ def voxelize(
     m = np.eye(4) if image_to_patient is None else np.asarray(image_to_patient, dtype=float)
     rot, shift = m[:3, :3], m[:3, :3] @ np.asarray(grid.origin) + m[:3, 3]
     # Patient point of voxel index (i, j, k) (+ sub-voxel offset) = a @ (i, j, k) + shift.
-    a = rot * grid.spacing
+    a = rot * grid.spacing_xyz[None, :]
 
     def classify(i, j, k) -> tuple[np.ndarray, np.ndarray]:
         # Every term carries i, j and k, so each coordinate has the full broadcast shape.

@@ -24,7 +24,7 @@ import tomli_w
 from breastmodel.config import write_atomic, write_json
 from breastmodel.phantom.anatomy import TISSUE_NAMES, Anatomy
 from breastmodel.phantom.motion import patient_gravity, random_motion
-from breastmodel.phantom.rendering import T2_INTENSITY, render
+from breastmodel.phantom.rendering import intensity_table, render
 from breastmodel.phantom.voxelize import Grid, voxelize
 from imaging.io import write_volume
 
@@ -80,7 +80,7 @@ def _stream(seed: int, position: str, purpose: int) -> np.random.Generator:
 
 def _image(array: np.ndarray, grid: Grid) -> sitk.Image:
     img = sitk.GetImageFromArray(array)
-    img.SetSpacing((grid.spacing,) * 3)
+    img.SetSpacing(tuple(map(float, grid.spacing_xyz)))
     img.SetOrigin(grid.origin)
     img.SetDirection((1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0))
     return img
@@ -99,7 +99,7 @@ def make_phantom(
     out: str | Path,
     *,
     seed: int = 0,
-    voxel_size: float = 1.0,
+    voxel_size: float | Sequence[float] = 1.0,
     snr: float = 20.0,
     bias: float = 0.3,
     positions: Sequence[str] = ("prone", "supine", "supine_tilted"),
@@ -109,6 +109,8 @@ def make_phantom(
     anatomy: Anatomy | None = None,
     progress: bool = True,
     deformation: Callable[[str], Callable[[np.ndarray], np.ndarray]] | None = None,
+    contrast: str = "t2",
+    fat_suppressed: bool = False,
 ) -> Path:
     """Write a synthetic subject folder and its truth folder ``<out>_truth``.
 
@@ -119,7 +121,7 @@ def make_phantom(
     seed
         Seed of every random choice; the same seed gives byte-identical volumes.
     voxel_size
-        Isotropic voxel size, mm.
+        Voxel size, mm: one number (isotropic) or (x, y, z).
     snr
         Mean fat signal / Rician noise sigma.
     bias
@@ -139,6 +141,11 @@ def make_phantom(
         Optional ``deformation(position) -> u`` replacing :func:`displacement` (same contract:
         u maps deformed patient-frame points (n, 3) mm to displacements (n, 3) mm). Markers
         and landmarks are then moved by the forward map x = X + u(x).
+    contrast
+        ``"t2"`` or ``"t1"`` tissue intensities (:data:`~breastmodel.phantom.rendering.
+        INTENSITY`).
+    fat_suppressed
+        Suppress the fat signal (SNR then refers to the gland signal).
 
     Returns
     -------
@@ -154,8 +161,10 @@ def make_phantom(
         raise ValueError(f"phantom: duplicate position names in {positions}")
     if int(seed) != seed or seed < 0:
         raise ValueError(f"phantom: seed must be a non-negative integer, got {seed}")
-    if voxel_size <= 0:
-        raise ValueError(f"phantom: voxel size must be > 0 mm, got {voxel_size}")
+    vs = np.asarray(voxel_size, dtype=float)
+    if vs.shape not in ((), (3,)) or not np.all(vs > 0):
+        raise ValueError(f"phantom: voxel size must be one number or three, all > 0 mm; got "
+                         f"{voxel_size!r}")
     if max_rotation_deg < 0 or max_translation_mm < 0:
         raise ValueError("phantom: motion bounds must be >= 0")
     anatomy = anatomy if anatomy is not None else (Anatomy.small() if small else Anatomy())
@@ -192,7 +201,8 @@ def make_phantom(
             displacement=None if u is _no_displacement else u,
             progress=tick,
         )
-        rendered = render(tissue, _stream(seed, name, 1), snr=snr, bias=bias)
+        rendered = render(tissue, _stream(seed, name, 1), snr=snr, bias=bias,
+                          contrast=contrast, fat_suppressed=fat_suppressed)
         stored = np.clip(np.rint(rendered.image * INTENSITY_SCALE), 0, 32767).astype(np.int16)
         write_volume(_image(stored, grid), out / f"{name}.nii.gz")
         write_volume(_image(tissue.fine, grid), truth / f"{name}_tissue.nii.gz")
@@ -221,8 +231,9 @@ def make_phantom(
             "landmarks_mm": {k: v.tolist() for k, v in landmarks.items()},
             "noise_sigma": rendered.noise_sigma * INTENSITY_SCALE,
             "mean_fat_signal": rendered.mean_fat * INTENSITY_SCALE,
+            "mean_reference_signal": rendered.mean_reference * INTENSITY_SCALE,
             "tissue_volumes_mm3": {
-                n: float(c) * voxel_size**3 for n, c in zip(TISSUE_NAMES, volumes)
+                n: float(c) * grid.voxel_volume for n, c in zip(TISSUE_NAMES, volumes)
             },
         }
     bar.close()
@@ -237,9 +248,12 @@ def make_phantom(
             "seed": seed,
             "snr": snr,
             "bias_amplitude": bias,
-            "voxel_size_mm": voxel_size,
+            "voxel_size_mm": grid.spacing,
+            "contrast": contrast,
+            "fat_suppressed": bool(fat_suppressed),
             "intensity_scale": INTENSITY_SCALE,
-            "t2_intensity": {TISSUE_NAMES[k]: v for k, v in T2_INTENSITY.items()},
+            "intensity": {TISSUE_NAMES[k]: v for k, v in
+                          intensity_table(contrast, fat_suppressed=fat_suppressed).items()},
             "tissue_codes": {n: i for i, n in enumerate(TISSUE_NAMES)},
             "label_codes": {"background": 0, "breast": 1, "muscle": 2, "gland": 3},
             "reference": reference,

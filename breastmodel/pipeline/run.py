@@ -67,7 +67,14 @@ class _Runner:
         if self.progress:
             print(f"[{len(self.stages) + 1:2d}] {label:<26s} "
                   f"{'cached' if done else 'running...'}", flush=True)
-        path = self.cache.run(name, key, fn, config=config)
+        try:
+            path = self.cache.run(name, key, fn, config=config)
+        except Exception as exc:
+            # the stages so far travel with the error, so a caller can report what ran
+            failed = {"name": name, "label": label, "key": str(key), "status": "failed",
+                      "wall_s": round(time.perf_counter() - t0, 3)}
+            exc.stages = [*self.stages, failed]
+            raise
         wall = time.perf_counter() - t0
         if self.progress and not done:
             print(f"     {label:<26s} done in {wall:.1f} s", flush=True)

@@ -41,8 +41,8 @@ def test_xml_parses_with_one_based_ids_and_domains_per_region():
     assert ids == list(range(1, mesh.n_tets + 1))
     conn = {part.get("name"): np.array([[int(v) - 1 for v in e.text.split(",")] for e in part])
             for part in elems}
-    for code in (1, 2):
-        assert np.array_equal(conn[{1: "breast_left", 2: "muscle"}[code]], mesh.tets[mesh.region == code])
+    for code, part in ((1, "breast_left"), (2, "muscle")):
+        assert np.array_equal(conn[part], mesh.tets[mesh.region == code])
     doms = root.findall("./MeshDomains/SolidDomain")
     assert {d.get("type") for d in doms} == {"ut4-solid"}
     mats = {m.get("name"): m for m in root.findall("./Material/material")}
@@ -161,3 +161,30 @@ def test_read_node_data_takes_the_last_record_by_id():
     assert t == 1.0 and np.array_equal(u, [[1, 2, 3], [4, 5, 6]])
     with pytest.raises(ValueError, match="lacks nodes"):
         read_node_data(text.replace("2,4,5,6\n", ""), 2)
+
+
+def test_ligaments_are_grouped_by_modulus_and_skin_is_shells():
+    m = two_region_box()
+    pairs = np.array([[0, 5], [1, 6], [2, 7]])
+    mesh = Mesh(m.nodes, m.tets, m.region, node_sets=m.node_sets,
+                face_sets={"skin": [[0, 1, 4], [1, 5, 4]]},
+                node_pairs={"ligament_medial": pairs[:2], "ligament_lateral": pairs[2:]})
+    model = hanging(mesh, ligaments={"E": 50.0, "area": 2.0, "E_by_group": {"lateral": 100.0}},
+                    skin={"E": 4.0, "thickness": 2.0, "wrinkling": "none"})
+    root = ET.fromstring(feb_text(model))
+    dmats = {d.get("id"): d for d in root.findall("./Discrete/discrete_material")}
+    got = {}
+    for d in root.findall("./Discrete/discrete"):
+        mat = dmats[d.get("dmat")]
+        assert mat.get("type") == "nonlinear spring" and mat.find("measure").text == "strain"
+        ds = root.find(f"./Mesh/DiscreteSet[@name='{d.get('discrete_set')}']")
+        got[float(mat.find("scale").text)] = [[int(v) - 1 for v in e.text.split(",")]
+                                              for e in ds]
+    assert got == {100.0: pairs[:2].tolist(), 200.0: pairs[2:].tolist()}
+    (shell,) = [e for e in root.findall("./Mesh/Elements") if e.get("type") == "tri3"]
+    assert [int(e.get("id")) for e in shell] == [mesh.n_tets + 1, mesh.n_tets + 2]
+    dom = root.find("./MeshDomains/ShellDomain")
+    assert float(dom.find("shell_thickness").text) == 2.0
+    mat = root.find(f"./Material/material[@name='{dom.get('mat')}']")
+    assert float(mat.find("density").text) == 0.0
+    assert float(mat.find("c1").text) == pytest.approx(4.0 / 2.98 / 2)

@@ -1,0 +1,222 @@
+"""The phantom family: each variety option changes what it should, draws are deterministic,
+specs round-trip through JSON, and FEBio computes plausible, cached truths."""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from breastmodel.phantom import make_phantom, truth_folder
+from breastmodel.phantom.anatomy import AIR, FAT, GLAND, MARKER, MUSCLE, SKIN, reference_volumes
+from breastmodel.phantom.family import (
+    FOV_KINDS,
+    SubjectSpec,
+    draw_spec,
+    truth_model,
+)
+from breastmodel.phantom.rendering import render
+from breastmodel.phantom.voxelize import Grid, voxelize
+
+TISSUE = (FAT, MUSCLE, GLAND, SKIN)
+
+
+def _fine(spec: SubjectSpec, spacing=2.0):
+    an = spec.anatomy()
+    grid = Grid.from_box(an.fov_min, an.fov_max, spacing)
+    return an, grid, voxelize(an, grid)
+
+
+# --- draws and serialisation --------------------------------------------------------------
+
+
+def test_draws_are_deterministic_per_seed_and_differ_across_seeds():
+    assert draw_spec(3) == draw_spec(3)
+    assert draw_spec(3, size="full") == draw_spec(3, size="full")
+    specs = [draw_spec(s) for s in range(12)]
+    assert len({sp.to_json() for sp in specs}) == 12
+    # the draws cover the options: every field of view, both contrasts, fat suppression on
+    # and off, several cups and voxel spacings
+    assert {sp.fov for sp in specs} == set(FOV_KINDS)
+    assert {sp.contrast for sp in specs} == {"t1", "t2"}
+    assert {sp.fat_suppressed for sp in specs} == {True, False}
+    assert len({sp.cup for sp in specs}) >= 3
+    assert len({sp.voxel_size for sp in specs}) >= 3
+    for sp in specs:
+        assert 10 <= sp.snr <= 40 and 0.1 <= sp.bias <= 0.4
+        tilt = float(sp.positions[-1].rsplit("_", 1)[1])
+        assert 0 <= tilt <= 60
+
+
+def test_overrides_change_only_what_they_name():
+    a = draw_spec(5)
+    b = draw_spec(5, cup="D", fov="slab")
+    assert (b.cup, b.fov) == ("D", "slab")
+    assert replace(b, cup=a.cup, fov=a.fov) == a
+    with pytest.raises(ValueError, match="unknown field"):
+        draw_spec(5, colour="red")
+    with pytest.raises(ValueError, match="fov must be one of"):
+        draw_spec(5, fov="helmet")
+
+
+def test_spec_round_trips_through_json():
+    for seed, size in ((0, "small"), (1, "full"), (2, "small")):
+        sp = draw_spec(seed, size=size)
+        text = sp.to_json()
+        assert SubjectSpec.from_json(text) == sp
+        assert json.loads(text)["voxel_size"] == list(sp.voxel_size)
+        # equal specs make equal anatomies and truth physics
+        back = SubjectSpec.from_json(text)
+        assert back.anatomy() == sp.anatomy() and back.truth_model() == sp.truth_model()
+    with pytest.raises(ValueError, match="unknown subject spec key"):
+        SubjectSpec.from_dict({**draw_spec(0).to_dict(), "extra": 1})
+
+
+# --- variety options ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("spacing", [(1.0, 1.0, 1.0), (0.5, 0.5, 0.6), (0.7, 0.7, 1.5)])
+def test_written_volume_has_the_spacing(tmp_path, spacing):
+    spec = draw_spec(0, voxel_size=spacing)
+    an = spec.anatomy()
+    # a thin crop keeps the finest grid quick
+    an = an.with_fov(an.fov_min, (an.fov_max[0], an.fov_max[1], an.fov_min[2] + 6.0))
+    out = make_phantom(tmp_path / "s", seed=0, anatomy=an, voxel_size=spacing,
+                       positions=("supine",), max_rotation_deg=0, max_translation_mm=0,
+                       progress=False)
+    img = sitk.ReadImage(str(out / "supine.nii.gz"))
+    assert img.GetSpacing() == pytest.approx(spacing, abs=1e-6)
+    expected = np.round((np.subtract(an.fov_max, an.fov_min)) / np.asarray(spacing))
+    assert img.GetSize() == tuple(int(v) for v in expected)
+    assert sitk.ReadImage(str(truth_folder(out) / "supine_labels.nii.gz")).GetSpacing() == \
+        pytest.approx(spacing, abs=1e-6)
+
+
+def test_scalar_spacing_still_works():
+    g = Grid.from_box((0, 0, 0), (10, 20, 30), 2.0)
+    assert g.spacing == 2.0 and g.size == (5, 10, 15)
+    assert g.spacing_xyz.tolist() == [2.0, 2.0, 2.0] and g.voxel_volume == 8.0
+    g3 = Grid.from_box((0, 0, 0), (10, 20, 30), (1.0, 2.0, 3.0))
+    assert g3.size == (10, 10, 10) and g3.voxel_volume == 6.0
+    np.testing.assert_allclose(g3.points(np.array([1])), [[1.5, 1.0, 1.5]])
+    with pytest.raises(ValueError, match="voxel spacing"):
+        Grid((0, 0, 0), (1.0, 0.0, 1.0), (1, 1, 1))
+
+
+def test_slab_chest_wall_meets_air():
+    spec = draw_spec(2, fov="slab")
+    an, grid, tv = _fine(spec, 1.5)
+    f = tv.fine
+    y = grid.origin[1] + grid.spacing * np.arange(grid.size[1])
+    behind = y > 0.75  # posterior of the slab's posterior face (y = 0), past partial volume
+    assert np.all(f[:, behind, :] == AIR)
+    assert not np.any(f == 6)  # no thorax
+    # muscle at the slab's posterior face, and air beside the slab at its sides
+    assert np.any(f[:, (y > -1.5) & (y < 0), :] == MUSCLE)
+    x = grid.origin[0] + grid.spacing * np.arange(grid.size[0])
+    side = np.abs(x) > an.slab_half_width + 1.0
+    assert side.any() and np.all(f[:, :, side][f[:, :, side] != MARKER] == AIR)
+    # no skin outside the breasts: every skin voxel is within a breast's box
+    skin_x = x[np.nonzero(f == SKIN)[2]]
+    assert np.all(np.abs(skin_x) <= an.left.center_x + max(an.left.radius_x,
+                                                           an.right.radius_x) + 1.5)
+    # the body touches no image boundary
+    for ax in range(3):
+        for i in (0, -1):
+            face = np.take(f, i, axis=ax)
+            assert not np.isin(face, TISSUE).any()
+
+
+def test_coil_fov_cuts_the_body_at_the_sides_and_behind():
+    coil = _fine(draw_spec(4, fov="coil"))[2].fine
+    torso = _fine(draw_spec(4, fov="torso"))[2].fine
+    for f, touches in ((coil, True), (torso, False)):
+        sides = np.isin(f[:, :, 0], TISSUE).any() and np.isin(f[:, :, -1], TISSUE).any()
+        assert sides == touches
+        assert np.isin(f[:, -1, :], TISSUE).any()  # cut behind in both
+    a_coil, a_torso = draw_spec(4, fov="coil").anatomy(), draw_spec(4, fov="torso").anatomy()
+    assert a_coil.fov_max[1] < a_torso.fov_max[1] - 10.0  # cut closer behind the breasts
+    assert a_coil.fov_max[0] < a_coil.torso_half_width < a_torso.fov_max[0]
+
+
+def test_cup_fat_gland_ptosis_and_asymmetry_change_the_anatomy():
+    def vols(**kw):
+        an = draw_spec(6, fov="torso", **{"ptosis": 0.0, **kw}).anatomy()
+        return an, reference_volumes(an, step=1.5)
+
+    vol = {c: vols(cup=c, asymmetry=0.0)[1] for c in "ABCD"}
+    breast = [vol[c]["fat"] + vol[c]["gland"] for c in "ABCD"]
+    assert np.all(np.diff(breast) > 0)
+    thin, thick = vols(subcutaneous_fat_mm=2.0)[1], vols(subcutaneous_fat_mm=7.0)[1]
+    assert thick["fat"] > thin["fat"] and thick["muscle"] < thin["muscle"]
+    lo, hi = vols(gland_scale=0.35)[1], vols(gland_scale=0.7)[1]
+    assert hi["gland"] / (hi["gland"] + hi["fat"]) > 2 * lo["gland"] / (lo["gland"] + lo["fat"])
+    flat, droop = vols(ptosis=0.0)[0], vols(ptosis=0.4)[0]
+    for side in ("left", "right"):
+        drop = flat.landmarks()[f"nipple_{side}"][2] - droop.landmarks()[f"nipple_{side}"][2]
+        assert drop == pytest.approx(0.4 * getattr(droop, side).projection)
+        # the drooping breast really hangs: its lowest tissue near the tip is lower
+        tip = droop.landmarks()[f"nipple_{side}"]
+        pts = np.array([[tip[0], tip[1] + 3.0, z] for z in np.arange(-60.0, 60.0, 0.25)])
+        zs_d = pts[np.isin(droop.classify(pts), TISSUE), 2]
+        zs_f = pts[np.isin(flat.classify(pts), TISSUE), 2]
+        assert zs_d.min() < zs_f.min() - 5.0
+    sym, asym = vols(asymmetry=0.0)[0], vols(asymmetry=0.2)[0]
+    assert sym.left.projection == sym.right.projection
+    assert asym.left.projection / asym.right.projection == pytest.approx(1.1 / 0.9)
+
+
+def test_ptosis_reference_volume_matches_voxels():
+    """Sheared (ptotic) breasts keep exact chords: reference volumes agree with a fine
+    voxelisation."""
+    an = draw_spec(3, fov="slab", ptosis=0.4, exponent=2.4).anatomy()
+    ref = reference_volumes(an, step=0.5)
+    grid = Grid.from_box(an.fov_min, an.fov_max, 1.0)
+    tv = voxelize(an, grid, supersample=3)
+    counts = np.bincount(tv.fine.ravel(), minlength=7) * grid.voxel_volume
+    for code, name in ((FAT, "fat"), (GLAND, "gland")):
+        assert counts[code] == pytest.approx(ref[name], rel=0.03), name
+    # The slab is a box (its 1 mm voxels would be off by up to half a voxel per face); the
+    # reference's lines are exact along y and miss at most half a line step at each x/z edge.
+    w, h = an.slab_half_width, an.slab_half_height
+    slab = 4 * w * h * an.muscle
+    assert abs(ref["muscle"] - slab) <= slab * 0.25 * (1 / w + 1 / h)
+
+
+def _tissue_mean(img, fine, code):
+    return float(img[fine == code].mean())
+
+
+def test_fat_suppression_darkens_fat_and_t1_inverts_gland_contrast():
+    spec = draw_spec(1, fov="torso")
+    _, _, tv = _fine(spec, 2.0)
+
+    def img(**kw):
+        return render(tv, np.random.default_rng(0), snr=1e6, bias=0.0, blur_sigma_voxels=0,
+                      **kw).image
+
+    t2, t2fs = img(contrast="t2"), img(contrast="t2", fat_suppressed=True)
+    t1 = img(contrast="t1")
+    f = tv.fine
+    assert _tissue_mean(t2fs, f, FAT) < 0.2 * _tissue_mean(t2, f, FAT)
+    assert _tissue_mean(t2fs, f, FAT) < _tissue_mean(t2fs, f, GLAND)
+    assert _tissue_mean(t2, f, GLAND) > _tissue_mean(t2, f, MUSCLE)
+    assert _tissue_mean(t1, f, GLAND) < _tissue_mean(t1, f, MUSCLE)
+    # SNR refers to gland when fat is suppressed
+    r = render(tv, np.random.default_rng(0), snr=20.0, bias=0.0, fat_suppressed=True)
+    assert r.noise_sigma == pytest.approx(r.mean_reference / 20.0)
+    assert r.mean_reference > r.mean_fat
+
+
+def test_truth_physics_presets():
+    bulk = truth_model(draw_spec(0, breast_E_kpa=2.0))
+    assert bulk.materials[1]["E"] == 2.0 and bulk.materials[2]["E"] == 10.0
+    assert dict(bulk.effects) == {"fixed": {"node_set": "fixed"}} and not bulk.split_interface
+    assert bulk.mesh_size_mm == 5.0
+    asym = truth_model(draw_spec(0, breast_E_kpa=2.0, physics="asymmetric"))
+    assert asym.materials[1]["E"] == pytest.approx(1.4) and asym.materials[3]["E"] == 2.8
+    gland = truth_model(draw_spec(0, physics="gland+skin"))
+    assert gland.has_gland and "skin" in gland.effects
+    with pytest.raises(ValueError, match="unknown physics"):
+        draw_spec(0, physics="magic")
