@@ -16,9 +16,12 @@ passed ``approximate=True`` and otherwise records the approximation as a comment
 
 Element technology (``element``):
 
-- ``"tet4"``: FEBio's standard displacement tet (one Gauss point); locks volumetrically at
-  nu near 1/2 (too stiff).
-- ``"ut4"``: FEBio's nodally integrated UT4 tet (locking-free, like our "anp").
+- ``"tet4"``: FEBio's standard displacement tet; the same discrete problem as our
+  ``formulation="standard"`` (and it locks volumetrically as that does at nu near 1/2).
+- ``"ut4"``: FEBio's nodally integrated UT4 tet (locking-free). It integrates the whole
+  energy at the nodes (plus a small element share, ``alpha``), whereas our "anp" averages only
+  the volume ratio, so UT4 is somewhat softer than "anp" on the same mesh; its stiffness is
+  costly to evaluate (minutes on a 20k-tet mesh).
 - ``"tet10"``: quadratic tets; a mid-edge node is added on every edge (appended after the
   mesh nodes, straight edges). The displacements of the mesh nodes are the first N rows of
   FEBio's output. Effects on surfaces (shells, contact) are refused with tet10.
