@@ -16,9 +16,12 @@ passed ``approximate=True`` and otherwise records the approximation as a comment
 
 Element technology (``element``):
 
-- ``"tet4"``: FEBio's standard displacement tet (one Gauss point); locks volumetrically at
-  nu near 1/2 (too stiff).
-- ``"ut4"``: FEBio's nodally integrated UT4 tet (locking-free, like our "anp").
+- ``"tet4"``: FEBio's standard displacement tet; the same discrete problem as our
+  ``formulation="standard"`` (and it locks volumetrically as that does at nu near 1/2).
+- ``"ut4"``: FEBio's nodally integrated UT4 tet (locking-free). It integrates the whole
+  energy at the nodes (plus a small element share, ``alpha``), whereas our "anp" averages only
+  the volume ratio, so UT4 is somewhat softer than "anp" on the same mesh; its stiffness is
+  costly to evaluate (minutes on a 20k-tet mesh).
 - ``"tet10"``: quadratic tets; a mid-edge node is added on every edge (appended after the
   mesh nodes, straight edges). The displacements of the mesh nodes are the first N rows of
   FEBio's output. Effects on surfaces (shells, contact) are refused with tet10.
@@ -68,7 +71,14 @@ def _num(v: float) -> str:
 
 
 def _ids(a) -> str:
-    return ",".join(str(int(i) + 1) for i in np.asarray(a).ravel())
+    return ",".join(map(str, (np.asarray(a, np.int64).ravel() + 1).tolist()))
+
+
+def _rows(tag: str, conn: np.ndarray, first_id: int, indent: str = "\t\t\t") -> list[str]:
+    """``<tag id="k">a,b,c</tag>`` lines of 0-based connectivity rows, ids from first_id."""
+    conn = (np.asarray(conn, np.int64) + 1).tolist()
+    return [f'{indent}<{tag} id="{first_id + i}">{",".join(map(str, row))}</{tag}>'
+            for i, row in enumerate(conn)]
 
 
 def _param_lines(params: Mapping[str, Any], indent: str) -> list[str]:
@@ -105,9 +115,10 @@ def tet10_nodes(X: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray
     edges : (E, 2) corner nodes of each mid-edge node (sorted pair)
     """
     tets = np.asarray(tets, np.int64)
-    e = np.sort(tets[:, TET10_EDGES].reshape(-1, 2), axis=1)
-    edges, inv = np.unique(e, axis=0, return_inverse=True)
     n = len(X)
+    e = np.sort(tets[:, TET10_EDGES].reshape(-1, 2), axis=1)
+    keys, inv = np.unique(e[:, 0] * n + e[:, 1], return_inverse=True)
+    edges = np.stack([keys // n, keys % n], axis=1)
     X10 = np.concatenate([X, 0.5 * (X[edges[:, 0]] + X[edges[:, 1]])])
     tets10 = np.concatenate([tets, n + inv.reshape(-1, 6)], axis=1)
     return X10, tets10, edges
@@ -208,7 +219,7 @@ class FebBuilder:
         name = self.unique(base, "surface")
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
         lines = [f'\t\t<Surface name="{name}">']
-        lines += [f'\t\t\t<tri3 id="{i + 1}">{_ids(f)}</tri3>' for i, f in enumerate(faces)]
+        lines += _rows("tri3", faces, 1)
         lines.append("\t\t</Surface>")
         self.lines["Mesh"] += lines
         return name
@@ -246,9 +257,8 @@ class FebBuilder:
         name = self.unique(base, "part")
         faces = np.asarray(faces, np.int64).reshape(-1, 3)
         lines = [f'\t\t<Elements type="tri3" name="{name}">']
-        for f in faces:
-            lines.append(f'\t\t\t<elem id="{self._next_elem}">{_ids(f)}</elem>')
-            self._next_elem += 1
+        lines += _rows("elem", faces, self._next_elem)
+        self._next_elem += len(faces)
         lines.append("\t\t</Elements>")
         self.shell_elements += lines
         self.shell_domains.append((name, material, float(thickness)))
@@ -406,16 +416,16 @@ class FebBuilder:
         out += self._control(steps, solver, tol)
         out += ["\t<Material>"] + self.materials + ["\t</Material>"]
         out += ["\t<Mesh>", '\t\t<Nodes name="all">']
-        out += [f'\t\t\t<node id="{i + 1}">{_num(x)},{_num(y)},{_num(z)}</node>'
-                for i, (x, y, z) in enumerate(self.nodes_out)]
+        out += [f'\t\t\t<node id="{i + 1}">{x!r},{y!r},{z!r}</node>'
+                for i, (x, y, z) in enumerate(np.asarray(self.nodes_out, float).tolist())]
         out.append("\t\t</Nodes>")
         etype = "tet10" if self.element == "tet10" else "tet4"
         eid = 1
         for c in codes:
             out.append(f'\t\t<Elements type="{etype}" name="{part[c]}">')
-            for t in self.tets_out[mesh.region == c]:
-                out.append(f'\t\t\t<elem id="{eid}">{_ids(t)}</elem>')
-                eid += 1
+            conn = self.tets_out[mesh.region == c]
+            out += _rows("elem", conn, eid)
+            eid += len(conn)
             out.append("\t\t</Elements>")
         out += self.shell_elements
         out += self.lines["Mesh"]

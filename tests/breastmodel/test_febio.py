@@ -293,3 +293,22 @@ def test_mesh_export_runs_in_febio(febio, tmp_path):
                     timeout_s=120)
     assert run.converged and run.displacement.shape == (mesh.n_nodes, 3)
     assert run.displacement[:, 2].min() < 0.0  # it sags under gravity
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("law", ["neo_hookean", "gent"])
+def test_hemisphere_tet10_agrees_with_our_anp(febio, tmp_path, law):
+    """The locking-free answers: our averaged-nodal-pressure tets and FEBio's quadratic tets
+    (mid-edge nodes on straight edges) on the 20k hemisphere agree within 1 % at the tip.
+    (FEBio's UT4 with this uncoupled law gives 12.33 mm for the Neo-Hookean, 1.8 % above our
+    12.11 mm; see bench/febio_hemisphere.py.) Minutes on one thread: run with -m slow."""
+    if not os.path.exists(HEMI):
+        pytest.skip(f"hemisphere reference mesh not found at {HEMI}")
+    model, tip = hemisphere_model(law, "anp")
+    ours = solve(model, options=SolverOptions(tol=1e-10))
+    run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet10", steps=2)
+    a, b = np.linalg.norm(ours.u[tip]), np.linalg.norm(run.displacement[tip])
+    print(f"{law}: tip ours anp {a:.4f} FEBio tet10 {b:.4f} mm ({b / a - 1:+.2%}), "
+          f"FEBio {run.wall_s:.0f} s")
+    assert ours.converged and run.converged
+    assert abs(b / a - 1.0) < 0.01

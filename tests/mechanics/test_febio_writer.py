@@ -188,3 +188,17 @@ def test_ligaments_are_grouped_by_modulus_and_skin_is_shells():
     mat = root.find(f"./Material/material[@name='{dom.get('mat')}']")
     assert float(mat.find("density").text) == 0.0
     assert float(mat.find("c1").text) == pytest.approx(4.0 / 2.98 / 2)
+
+
+def test_reference_positions_and_surface_effects_on_tet10():
+    mesh = two_region_box()
+    X = mesh.nodes * 1.5 + 2.0
+    root = ET.fromstring(feb_text(hanging(mesh), X=X))
+    xyz = np.array([[float(v) for v in n.text.split(",")]
+                    for n in root.findall("./Mesh/Nodes/node")])
+    assert np.array_equal(xyz, X)
+    skinned = Mesh(mesh.nodes, mesh.tets, mesh.region, node_sets=mesh.node_sets,
+                   face_sets={"skin": [[0, 1, 4]]})
+    model = hanging(skinned, skin={"wrinkling": "none"})
+    with pytest.raises(FebioUnsupported, match="'skin'.*linear faces"):
+        feb_text(model, element="tet10")
