@@ -348,7 +348,9 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
                   _table(["parameter", "value", "MHD at -10%", "MHD at +10%",
                           "d ln MHD / d ln p"], srows)]
     blocks = (metrics.get("files") or {}).get("positions") or {}
-    files = ["run.vtm (ParaView)", *(f for b in blocks.values() for f in b.values())]
+    files = ["run.vtm (ParaView)", *(f for b in blocks.values() for f in b.values()),
+             *(e["file"] for e in ((metrics.get("files") or {}).get("febio") or {}).values()
+               if e.get("file"))]
     if images:
         files += [*images["volumes"].values(), *images["labels"].values(),
                   *(images.get("segmentations") or {}).values(),
