@@ -23,6 +23,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+# bench/ holds scripts named like the packages (bench/meshing.py): not on the import path
+if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
+    sys.path[0] = str(ROOT)
 
 
 def main(argv=None) -> int:
@@ -44,7 +47,6 @@ def main(argv=None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "2")
 
     from breastmodel.febio import find_febio
-
     from breastmodel.validation import family_maker, format_table, run_suite
 
     try:
