@@ -1,5 +1,6 @@
 # One command each: `make demo` runs the main job on built-in demo data, `make test` runs the tests.
-# Both set everything up on a fresh machine with Python 3.11 (venv, Python packages, libusb for open3d).
+# Both set everything up on a fresh machine with Python 3.11 (venv, Python packages, and Debian's
+# libusb-1.0-0 for open3d and chromium for the report's rendering test).
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -17,6 +18,11 @@ $(STAMP): pyproject.toml
 	  ( echo "installing libusb-1.0-0 (needed by open3d)"; \
 	    $(SUDO) apt-get install -y -q libusb-1.0-0 || \
 	    ( $(SUDO) apt-get update -q && $(SUDO) apt-get install -y -q libusb-1.0-0 ) )
+	@# the report's picture test renders the HTML report in headless Chromium
+	@command -v chromium >/dev/null 2>&1 || \
+	  ( echo "installing chromium (renders the HTML report in the tests)"; \
+	    $(SUDO) apt-get install -y -q chromium || \
+	    ( $(SUDO) apt-get update -q && $(SUDO) apt-get install -y -q chromium ) )
 	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e ".[dev]"
