@@ -263,6 +263,14 @@ def test_sliding_is_written_as_sliding_elastic_only_when_allowed():
     prim = root.find(f"./Mesh/Surface[@name='{pair.find('primary').text}']")
     first = [int(v) - 1 for v in prim[0].text.split(",")]
     assert first == model.mesh.face_sets["interface"][0][::-1].tolist()  # out of the breast
+    assert root.find("./Control/time_stepper/dtmax").get("lc") is None
+    # a friction path of 4 steps: FEBio must converge at loads 1/4, 1/2, 3/4 as well
+    model = layered_model(layered_block(True), (1.0, 0.0, -4.0),
+                          sliding={"friction": 0.5, "path_steps": 4})
+    root = ET.fromstring(feb_text(model, approximate=True, steps=2))
+    assert root.find("./Control/time_stepper/dtmax").get("lc") == "2"
+    curve = root.find("./LoadData/load_controller[@id='2']")
+    assert [float(p.text.split(",")[0]) for p in curve.find("points")] == [0.25, 0.5, 0.75, 1.0]
 
 
 def test_cache_computes_a_truth_once(febio, tmp_path):
@@ -312,3 +320,26 @@ def test_hemisphere_tet10_agrees_with_our_anp(febio, tmp_path, law):
           f"FEBio {run.wall_s:.0f} s")
     assert ours.converged and run.converged
     assert abs(b / a - 1.0) < 0.01
+
+
+def test_path_points_are_febio_must_points(febio, tmp_path):
+    """An effect whose history follows the loading path (path_points) makes FEBio converge
+    there: its logfile has a record at each must point."""
+    from mechanics.effects.fixed import Fixed
+
+    @register_effect
+    class PathFixed(Fixed):
+        name = "test_path_fixed"
+
+        def path_points(self):
+            return (0.3, 0.65)
+
+    try:
+        model, _ = hanging_block(test_path_fixed={"node_set": "fixed"})
+        run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet4", steps=2)
+    finally:
+        EFFECTS.pop("test_path_fixed")
+    assert run.converged
+    times = [float(line.split("=")[1]) for line in
+             (tmp_path / "displacement.txt").read_text().splitlines() if line.startswith("*Time")]
+    assert {0.3, 0.5, 0.65, 1.0} <= {round(t, 9) for t in times}
