@@ -115,7 +115,7 @@ def test_hemisphere_tet4_matches_our_standard_tets(febio, tmp_path, law):
     model, tip = hemisphere_model(law, "standard")
     ours = solve(model, options=SolverOptions(tol=1e-10))
     t0 = time.perf_counter()
-    run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet4",
+    run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet4", steps=2,
                            etol=1e-10)
     print(f"{law}: tip ours {np.linalg.norm(ours.u[tip]):.5f} FEBio tet4 "
           f"{np.linalg.norm(run.displacement[tip]):.5f} mm, FEBio {time.perf_counter() - t0:.1f} s")
