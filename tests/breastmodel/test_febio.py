@@ -367,3 +367,16 @@ def test_fascia_as_shells_between_the_solids(febio, tmp_path):
     print(f"top centre x: bare {u0:.5f}, fascia ours {ours:.5f}, FEBio {theirs:.5f} mm")
     assert theirs < ours < u0
     assert u0 - theirs < 0.01 * u0
+
+
+def test_non_convergence_is_an_error_naming_the_file(febio, tmp_path):
+    """A block pulled by a force far beyond what its elements survive in one step, with no
+    room to cut back: FEBio stops, and the error says so; check=False returns the partial
+    state flagged unconverged."""
+    model, bottom = hanging_block(point_load={"nodes": [0], "force": (0.0, 0.0, -1e6)})
+    with pytest.raises(FebioError, match=r"(?s)model\.feb.*did not converge"):
+        solve_with_febio(model, work_dir=tmp_path / "a", febio=febio, element="tet4", steps=1,
+                         max_retries=0, max_refs=3)
+    run = solve_with_febio(model, work_dir=tmp_path / "b", febio=febio, element="tet4",
+                           steps=1, max_retries=0, max_refs=3, check=False)
+    assert not run.converged
