@@ -380,3 +380,19 @@ def test_non_convergence_is_an_error_naming_the_file(febio, tmp_path):
     run = solve_with_febio(model, work_dir=tmp_path / "b", febio=febio, element="tet4",
                            steps=1, max_retries=0, max_refs=3, check=False)
     assert not run.converged
+
+
+def test_point_load_as_nodal_force(febio, tmp_path):
+    """20 mN down on the bottom centre of the hanging cube, beside its weight: FEBio's
+    nodal_force map gives our field (same bulk discretisation), to solver tolerance."""
+    model, bottom = hanging_block()
+    loaded = build_model(model.mesh, dict(model.materials),
+                         {"gravity": {"direction": (0, 0, -1)}, "fixed": {"node_set": "fixed"},
+                          "point_load": {"nodes": [bottom], "force": (0.0, 0.0, -20.0)}},
+                         formulation="standard")
+    ours = solve(loaded, options=SolverOptions(tol=1e-10))
+    run = solve_with_febio(loaded, work_dir=tmp_path, febio=febio, element="tet4", etol=1e-10)
+    print(f"bottom sag with 20 mN: ours {-ours.u[bottom, 2]:.5f} FEBio "
+          f"{-run.displacement[bottom, 2]:.5f} mm")
+    assert -ours.u[bottom, 2] > 1.5  # more than the 1.27 mm of its weight alone
+    assert np.abs(run.displacement - ours.u).max() < 1e-5 * -ours.u[bottom, 2]
