@@ -122,7 +122,7 @@ def _error_lines(log: str, limit: int = 12) -> list[str]:
 
 def run_febio(feb_text: str, *, work_dir: str | os.PathLike, febio: str | os.PathLike | None =
               None, threads: int = 1, timeout_s: float | None = None,
-              n_nodes: int | None = None) -> FebioRun:
+              n_nodes: int | None = None, check: bool = True) -> FebioRun:
     """Write ``feb_text`` to ``work_dir/model.feb``, run FEBio there and read the displacement.
 
     Parameters
@@ -134,16 +134,18 @@ def run_febio(feb_text: str, *, work_dir: str | os.PathLike, febio: str | os.Pat
     timeout_s : wall-clock limit, s (None: no limit)
     n_nodes : rows to return (default: every node in the file; give the mesh's node count
         to drop tet10 mid-edge nodes)
+    check : raise when FEBio did not reach full load (default); False returns the last
+        converged state with ``converged`` False
 
     Returns
     -------
-    FebioRun (``converged`` False when FEBio stopped before full load but wrote a result)
+    FebioRun
 
     Raises
     ------
     FebioError
-        FEBio missing, timed out, or wrote no displacement record; the message names the
-        ``.feb`` and quotes FEBio's error lines.
+        FEBio missing, timed out, wrote no displacement record, or (``check``) did not
+        converge; the message names the ``.feb`` and quotes FEBio's error lines.
     """
     exe = find_febio(febio)
     work = Path(work_dir)
@@ -184,6 +186,11 @@ def run_febio(feb_text: str, *, work_dir: str | os.PathLike, febio: str | os.Pat
     m = re.findall(r"Total number of equilibrium iterations\s*\.*\s*:\s*(\d+)", text)
     iterations = int(m[-1]) if m else None
     converged = bool(normal and proc.returncode == 0 and abs(t_end - 1.0) < 1e-9)
+    if check and not converged:
+        errors = _error_lines(text) or tail.splitlines()[-8:]
+        raise FebioError(f"FEBio [{feb}]: did not converge (last converged load {t_end:g}, "
+                         f"exit status {proc.returncode}); FEBio said:\n  "
+                         + "\n  ".join(errors))
     u.setflags(write=False)
     return FebioRun(u, converged, wall, iterations, tail, feb)
 
@@ -237,7 +244,8 @@ def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.Path
                      None, element: str = "ut4", threads: int = 1,
                      cache_dir: str | os.PathLike | None = None, X: np.ndarray | None = None,
                      timeout_s: float | None = None, steps: int = 10, solver: str = "newton",
-                     approximate: bool = False, **tolerances: float) -> FebioRun:
+                     approximate: bool = False, check: bool = True,
+                     **tolerances: float) -> FebioRun:
     """Solve ``model`` with FEBio; with ``cache_dir``, once per distinct ``.feb`` text.
 
     Parameters
@@ -251,6 +259,8 @@ def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.Path
         atomically); None: no cache
     X : (N, 3) reference positions, mm (default the mesh nodes)
     timeout_s : wall-clock limit for FEBio, s
+    check : raise when FEBio does not converge (default); False returns the last converged
+        state with ``converged`` False (not cached)
 
     Returns
     -------
@@ -261,7 +271,7 @@ def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.Path
     mechanics.febio.FebioUnsupported
         The model holds a material or effect FEBio cannot express (before FEBio runs).
     FebioError
-        FEBio is missing or failed.
+        FEBio is missing, failed, or (``check``) did not converge.
     """
     text = feb_text(model, X=X, element=element, steps=steps, solver=solver,
                     approximate=approximate, **tolerances)
@@ -277,7 +287,7 @@ def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.Path
             return FebioRun(u, bool(meta["converged"]), float(meta["wall_s"]),
                             meta["iterations"], meta["log_tail"], Path(meta["feb"]), cached=True)
     run = run_febio(text, work_dir=work_dir, febio=febio, threads=threads, timeout_s=timeout_s,
-                    n_nodes=n)
+                    n_nodes=n, check=check)
     if hit is not None and run.converged:
         meta = {"converged": run.converged, "wall_s": run.wall_s, "iterations": run.iterations,
                 "log_tail": run.log_tail, "feb": str(run.feb), "element": element,

@@ -369,6 +369,14 @@ class FebBuilder:
         self.approximations.append(f"{owner}: {why}")
 
     # -- the file ------------------------------------------------------------------------
+    def must_points(self, steps: int) -> list[float]:
+        """Times in (0, 1] where FEBio must converge a step: the step ends k / steps and the
+        effects' path points (friction history), when an effect has any; else none."""
+        path = sorted({float(p) for e in self.model.effects for p in e.path_points()})
+        if not path:
+            return []
+        return sorted({round(k / steps, 12) for k in range(1, steps + 1)} | set(path))
+
     def _control(self, steps: int, solver: str, tol: Mapping[str, float]) -> list[str]:
         if solver not in SOLVERS:
             raise ValueError(f"FEBio export: solver must be one of {SOLVERS}, got {solver!r}")
@@ -392,7 +400,8 @@ class FebBuilder:
                 f"\t\t\t<max_retries>{int(tol['max_retries'])}</max_retries>",
                 f"\t\t\t<opt_iter>{int(tol['opt_iter'])}</opt_iter>",
                 f"\t\t\t<dtmin>{_num(dt * tol['dtmin_fraction'])}</dtmin>",
-                f"\t\t\t<dtmax>{_num(dt)}</dtmax>", "\t\t</time_stepper>", "\t</Control>"]
+                (f'\t\t\t<dtmax lc="2">{_num(dt)}</dtmax>' if self.must_points(steps) else
+                 f"\t\t\t<dtmax>{_num(dt)}</dtmax>"), "\t\t</time_stepper>", "\t</Control>"]
 
     def text(self, *, steps: int, solver: str, tol: Mapping[str, float]) -> str:
         """The complete file."""
@@ -455,7 +464,14 @@ class FebBuilder:
         out += ["\t<LoadData>", '\t\t<load_controller id="1" name="ramp" type="loadcurve">',
                 "\t\t\t<interpolate>LINEAR</interpolate>",
                 "\t\t\t<points>", "\t\t\t\t<pt>0,0</pt>", "\t\t\t\t<pt>1,1</pt>", "\t\t\t</points>",
-                "\t\t</load_controller>", "\t</LoadData>"]
+                "\t\t</load_controller>"]
+        must = self.must_points(steps)
+        if must:  # dtmax follows this curve; its points are must points
+            out += ['\t\t<load_controller id="2" name="must_points" type="loadcurve">',
+                    "\t\t\t<interpolate>STEP</interpolate>", "\t\t\t<points>"]
+            out += [f"\t\t\t\t<pt>{_num(t)},{_num(1.0 / steps)}</pt>" for t in must]
+            out += ["\t\t\t</points>", "\t\t</load_controller>"]
+        out.append("\t</LoadData>")
         out += ["\t<Output>", "\t\t<logfile>",
                 f'\t\t\t<node_data data="ux;uy;uz" delim="," file="{DISPLACEMENT_FILE}"/>',
                 "\t\t</logfile>", "\t</Output>", "</febio_spec>"]
