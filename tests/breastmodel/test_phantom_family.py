@@ -282,3 +282,26 @@ def test_febio_truth_without_febio_says_so(tmp_path, monkeypatch):
     spec = draw_spec(0, positions=("supine",))
     with pytest.raises(RuntimeError, match="needs FEBio 4.*--febio"):
         make_subject(spec, tmp_path / "s", febio=tmp_path / "nowhere" / "febio4")
+
+
+def test_cli_truth_solver_febio_without_febio_says_so(tmp_path, monkeypatch):
+    import argparse
+
+    from breastmodel.commands import phantom
+
+    monkeypatch.setenv("FEBIO", str(tmp_path / "none"))
+    parser = argparse.ArgumentParser(prog="breastmodel")
+    phantom.add_parser(parser.add_subparsers(dest="command"))
+    missing = str(tmp_path / "no" / "febio4")
+    for extra in (["--small", "--voxel-size", "3", "--positions", "supine"],
+                  ["--family", "small"]):
+        args = parser.parse_args(["phantom", str(tmp_path / "s"), "--truth-solver", "febio",
+                                  "--febio", missing, *extra])
+        with pytest.raises(RuntimeError, match="needs FEBio 4.*--febio PATH"):
+            phantom.run(args)
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(draw_spec(4, size="full").to_json())
+    args = parser.parse_args(["phantom", str(tmp_path / "s"), "--spec", str(spec_file),
+                              "--febio", missing])
+    with pytest.raises(RuntimeError, match="needs FEBio 4"):
+        phantom.run(args)
