@@ -288,6 +288,10 @@ TRUTH_SOLVERS = ("ours", "febio")
 #: two steps reach the same equilibrium as ten (to 1e-13 mm on a small subject) at a fifth of
 #: the time, and FEBio's time stepper halves a step that fails to converge.
 FEBIO_STEPS = 2
+#: Effects that FEBio can only approximate, and how (recorded with each truth that has them).
+FEBIO_APPROXIMATIONS = {
+    "skin": "FEBio shell: carries compression and bends (no tension-field wrinkling)",
+}
 #: Part of every cached mesh's key: bump when the meshing of phantoms changes.
 MESH_CACHE_VERSION = 1
 
@@ -313,11 +317,13 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
     from breastmodel.febio import solve_with_febio
 
     febio_cache = Path(cache_dir) / "febio" if cache_dir is not None else None
+    approx = sorted(set(tm.effects) & set(FEBIO_APPROXIMATIONS))
     with tempfile.TemporaryDirectory(prefix=f"febio-{name}-") as tmp:
         wd = Path(work_dir) / name if work_dir is not None else Path(tmp)
         try:
             run = solve_with_febio(model, work_dir=wd, febio=febio_path, element="ut4",
-                                   threads=1, cache_dir=febio_cache, steps=FEBIO_STEPS)
+                                   threads=1, cache_dir=febio_cache, steps=FEBIO_STEPS,
+                                   approximate=bool(approx))
         except Exception as exc:  # noqa: BLE001 - re-raised naming the position and model
             raise RuntimeError(f"phantom: FEBio truth of position {name!r} with truth model "
                                f"{tm.name!r} failed: {exc}") from None
@@ -326,7 +332,8 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
         raise RuntimeError(f"phantom: FEBio did not converge for position {name!r} with "
                            f"truth model {tm.name!r}; log tail:\n{tail}")
     info = {"converged": True, "febio_wall_s": float(run.wall_s),
-            "cached": bool(getattr(run, "cached", False)), "element": "ut4"}
+            "cached": bool(getattr(run, "cached", False)), "element": "ut4",
+            "febio_approximations": {k: FEBIO_APPROXIMATIONS[k] for k in approx}}
     return np.asarray(run.displacement, float), info
 
 
