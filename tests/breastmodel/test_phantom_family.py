@@ -14,6 +14,7 @@ from breastmodel.phantom.family import (
     FOV_KINDS,
     SubjectSpec,
     draw_spec,
+    make_subject,
     truth_model,
 )
 from breastmodel.phantom.rendering import render
@@ -220,3 +221,87 @@ def test_truth_physics_presets():
     assert gland.has_gland and "skin" in gland.effects
     with pytest.raises(ValueError, match="unknown physics"):
         draw_spec(0, physics="magic")
+
+
+# --- FEBio truth --------------------------------------------------------------------------
+
+
+def _febio_or_skip():
+    try:
+        from breastmodel.febio import find_febio
+
+        return find_febio()
+    except Exception as exc:  # noqa: BLE001 - any failure to find it means: skip
+        pytest.skip(f"FEBio 4 is not available ({exc}); set $FEBIO to run the FEBio truth test")
+
+
+@pytest.mark.slow
+def test_febio_truth_is_plausible_and_cached(tmp_path):
+    """A small subject whose truth FEBio computes: fixed nodes stay, breasts sag along
+    gravity (opposite in prone and supine), and a second make hits the cache."""
+    febio = _febio_or_skip()
+    spec = draw_spec(11, fov="slab", cup="C", voxel_size=(2.0, 2.0, 2.0),
+                     positions=("prone", "supine"), breast_E_kpa=1.0)
+    cache = tmp_path / "cache"
+    out = make_subject(spec, tmp_path / "a", febio=febio, cache_dir=cache)
+    truth = truth_folder(out)
+    assert SubjectSpec.from_json((truth / "spec.json").read_text()) == spec
+    doc = json.loads((truth / "truth_model.json").read_text())
+    from mechanics.mesh import Mesh
+
+    mesh = Mesh.load_npz(truth / "stress_free_mesh.npz")
+    breast = np.unique(mesh.tets[np.isin(mesh.region, (1, 3))])
+    fixed = mesh.node_sets["fixed"]
+    assert len(fixed) > 0 and len(breast) > 0
+    u = {p: np.load(truth / f"{p}_displacement.npy") for p in spec.positions}
+    for p, g in (("prone", -1.0), ("supine", 1.0)):
+        info = doc["solves"][p]
+        assert info["solver"] == "febio" and info["converged"] and not info["cached"]
+        assert u[p].shape == (mesh.n_nodes, 3)
+        assert np.abs(u[p][fixed]).max() < 1e-9
+        # breasts move along gravity (y): mean displacement of breast nodes has gravity's sign
+        # and dominates the other components
+        m = u[p][breast].mean(0)
+        assert np.sign(m[1]) == g and abs(m[1]) > 2 * max(abs(m[0]), abs(m[2]))
+        assert 0.2 < np.linalg.norm(u[p], axis=1).max() < 30.0
+    # prone and supine sag in opposite directions, node by node in the breasts
+    anterior = breast[np.abs(u["prone"][breast, 1]) > 0.5 * np.abs(u["prone"][:, 1]).max()]
+    assert np.all(u["prone"][anterior, 1] * u["supine"][anterior, 1] < 0)
+    # second make: the mesh and FEBio's results come from the cache, the truth is identical
+    out2 = make_subject(spec, tmp_path / "b", febio=febio, cache_dir=cache)
+    doc2 = json.loads((truth_folder(out2) / "truth_model.json").read_text())
+    for p in spec.positions:
+        assert doc2["solves"][p]["cached"]
+        np.testing.assert_array_equal(np.load(truth_folder(out2) / f"{p}_displacement.npy"),
+                                      u[p])
+    assert (out / "prone.nii.gz").read_bytes() == (out2 / "prone.nii.gz").read_bytes()
+
+
+def test_febio_truth_without_febio_says_so(tmp_path, monkeypatch):
+    monkeypatch.setenv("FEBIO", str(tmp_path / "nowhere" / "febio4"))
+    spec = draw_spec(0, positions=("supine",))
+    with pytest.raises(RuntimeError, match="needs FEBio 4.*--febio"):
+        make_subject(spec, tmp_path / "s", febio=tmp_path / "nowhere" / "febio4")
+
+
+def test_cli_truth_solver_febio_without_febio_says_so(tmp_path, monkeypatch):
+    import argparse
+
+    from breastmodel.commands import phantom
+
+    monkeypatch.setenv("FEBIO", str(tmp_path / "none"))
+    parser = argparse.ArgumentParser(prog="breastmodel")
+    phantom.add_parser(parser.add_subparsers(dest="command"))
+    missing = str(tmp_path / "no" / "febio4")
+    for extra in (["--small", "--voxel-size", "3", "--positions", "supine"],
+                  ["--family", "small"]):
+        args = parser.parse_args(["phantom", str(tmp_path / "s"), "--truth-solver", "febio",
+                                  "--febio", missing, *extra])
+        with pytest.raises(RuntimeError, match="needs FEBio 4.*--febio PATH"):
+            phantom.run(args)
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(draw_spec(4, size="full").to_json())
+    args = parser.parse_args(["phantom", str(tmp_path / "s"), "--spec", str(spec_file),
+                              "--febio", missing])
+    with pytest.raises(RuntimeError, match="needs FEBio 4"):
+        phantom.run(args)
