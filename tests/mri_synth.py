@@ -12,6 +12,7 @@ fat bright); ``contrast="t1_fatsat"`` maps them to a fat-suppressed look instead
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
@@ -19,8 +20,8 @@ import SimpleITK as sitk
 from registration.transforms import rigid_matrix
 
 AIR, BREAST, MUSCLE, GLAND = 0, 1, 2, 3
-#: Intensity per fine class: air, fat, muscle, gland, skin.
-LEVELS = {"t2": (0.0, 1.0, 0.25, 0.6, 0.7), "t1_fatsat": (0.0, 0.35, 0.55, 1.0, 0.8)}
+#: Intensity per fine class: air, fat, muscle, gland, skin, marker.
+LEVELS = {"t2": (0.0, 1.0, 0.25, 0.6, 0.7, 1.3), "t1_fatsat": (0.0, 0.35, 0.55, 1.0, 0.8, 1.3)}
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,7 @@ class Slab:
     projection: float = 26.0      # y semi-axis (anterior)
     skin: float = 2.0
     gland_scale: float = 0.5
+    marker_radius: float = 2.0
     fov_min: tuple = (-70.0, -40.0, -55.0)
     fov_max: tuple = (70.0, 30.0, 55.0)
 
@@ -46,7 +48,8 @@ class Slab:
                 "lateral_right": np.array([-52.0, -2.5, -30.0])}
 
     def classify(self, x, y, z, *, swing_mm: float = 0.0):
-        """Fine class (0 air, 1 fat, 2 muscle, 3 gland, 4 skin) and the label of each point.
+        """Fine class (0 air, 1 fat, 2 muscle, 3 gland, 4 skin, 5 marker) and the label of
+        each point (markers are background).
 
         ``swing_mm`` shears the breasts sideways (+x) in proportion to their height over the
         slab (a tilted position's swing), the slab staying put.
@@ -69,7 +72,10 @@ class Slab:
             fine[inner] = 1
             fine[inner & gland] = 3
         fine[slab] = 2
-        labels = np.array([AIR, BREAST, MUSCLE, GLAND, BREAST], np.uint8)[fine]
+        for c in self.markers().values():
+            fine[(x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2
+                 <= self.marker_radius ** 2] = 5
+        labels = np.array([AIR, BREAST, MUSCLE, GLAND, BREAST, AIR], np.uint8)[fine]
         return fine, labels
 
 
@@ -128,3 +134,23 @@ def chest_points(labels: sitk.Image, step: int = 7) -> np.ndarray:
     idx = np.argwhere(sitk.GetArrayViewFromImage(labels) == MUSCLE)[::step][:, ::-1]
     d = np.asarray(labels.GetDirection()).reshape(3, 3)
     return (idx * np.asarray(labels.GetSpacing())) @ d.T + np.asarray(labels.GetOrigin())
+
+
+def write_subject(folder, images: dict, *, fiducials: dict | None = None,
+                  reference: str = "supine") -> Path:
+    """Write a subject folder: ``images`` position -> (image, gravity); ``fiducials``
+    position -> label -> (3,) mm (optional). Returns the folder."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    lines = ['subject = "synthetic"', f'reference = "{reference}"']
+    for name, (img, g) in images.items():
+        sitk.WriteImage(img, str(folder / f"{name}.nii.gz"))
+        lines += [f"[positions.{name}]", f'volume = "{name}.nii.gz"',
+                  f"gravity = [{', '.join(f'{float(v):.6f}' for v in g)}]"]
+    (folder / "subject.toml").write_text("\n".join(lines) + "\n")
+    if fiducials:
+        rows = ["position,label,x,y,z"] + [
+            f"{p},{k},{v[0]:.4f},{v[1]:.4f},{v[2]:.4f}"
+            for p, pts in fiducials.items() for k, v in pts.items()]
+        (folder / "fiducials.csv").write_text("\n".join(rows) + "\n")
+    return folder

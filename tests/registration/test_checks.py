@@ -5,10 +5,12 @@ moving position is a rigid motion plus a 25 mm sideways swing of the breasts (a 
 position), so a correlation that sees the breasts is pulled away from the chest wall.
 """
 
+import json
+
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from mri_synth import Slab, chest_points, euler, render
+from mri_synth import Slab, chest_points, euler, render, write_subject
 
 from imaging.preprocess import preprocess
 from registration.qa import rotation_error_deg, target_registration_error
@@ -137,3 +139,60 @@ def test_seed_zero_is_refused(tilted):
         refine_rigid(fixed, moving, sitk.Euler3DTransform(), seed=0)
     with pytest.raises(ValueError, match="seed"):
         register_rigid(fixed, moving, seed=-3)
+
+
+@pytest.fixture(scope="module")
+def tilted_subject(tmp_path_factory):
+    """Subject folder (supine + tilted, fiducials.csv) and a folder with the supine labels."""
+    root = tmp_path_factory.mktemp("tilted_subject")
+    anatomy = Slab()
+    fixed, labels = render(anatomy, seed=1)
+    truth = euler(**MOTION)
+    moving, _ = render(anatomy, motion=truth, swing_mm=25.0, seed=2)
+    fp = anatomy.markers()
+    mp = {k: transform_points(truth, v)[0] for k, v in fp.items()}
+    g = np.sqrt(0.5)
+    subject = write_subject(root / "subject", {"supine": (fixed, (0, 1, 0)),
+                                               "tilted": (moving, (g, g, 0))},
+                            fiducials={"supine": fp, "tilted": mp})
+    seg = root / "seg"
+    seg.mkdir()
+    sitk.WriteImage(labels, str(seg / "supine_labels.nii.gz"))
+    sitk.WriteImage(labels, str(seg / "tilted_labels.nii.gz"))  # only resampled, not used
+    return subject, seg, truth, labels
+
+
+def test_command_reports_status_and_stops_when_required(tilted_subject, tmp_path):
+    from breastmodel.commands.register import register_subject
+    from breastmodel.errors import StageError
+
+    subject, seg, truth, labels = tilted_subject
+    cfg = tmp_path / "ok.toml"
+    cfg.write_text("[register]\nrequire_fiducials = true\n")
+    rep = register_subject(subject, tmp_path / "ok", seg_dir=seg, config=cfg)
+    entry = rep["positions"]["tilted"]
+    assert entry["status"] == "ok" and entry["checks"]["passed"]
+    got = sitk.ReadTransform(str(tmp_path / "ok" / "tilted.tfm"))
+    assert target_registration_error(got, truth, chest_points(labels)).mean() <= 0.5
+    saved = json.loads((tmp_path / "ok" / "registration.json").read_text())
+    assert saved["positions"]["tilted"]["status"] == "ok"
+
+    # A localisation error no marker detector meets: the check must fail, and stop.
+    strict = tmp_path / "strict.toml"
+    strict.write_text("[register]\nrequire_fiducials = true\nfiducial_error_mm = 0.001\n")
+    with pytest.raises(StageError, match="require_fiducials"):
+        register_subject(subject, tmp_path / "strict", seg_dir=seg, config=strict)
+    saved = json.loads((tmp_path / "strict" / "registration.json").read_text())
+    assert saved["positions"]["tilted"]["status"] == "flagged"
+    assert saved["positions"]["tilted"]["warnings"]
+
+    # Without require_fiducials the same result is written with its warning, no error.
+    lax = tmp_path / "lax.toml"
+    lax.write_text("[register]\nfiducial_error_mm = 0.001\n")
+    rep = register_subject(subject, tmp_path / "lax", seg_dir=seg, config=lax)
+    assert rep["positions"]["tilted"]["status"] == "flagged"
+
+    # Same input, same transform: the cache means what it says.
+    assert (tmp_path / "lax" / "tilted.tfm").read_bytes() == (
+        tmp_path / "strict" / "tilted.tfm").read_bytes() == (
+        tmp_path / "ok" / "tilted.tfm").read_bytes()
