@@ -35,7 +35,7 @@ class Slab:
     breast_radius: float = 22.0   # x and z semi-axes
     projection: float = 26.0      # y semi-axis (anterior)
     skin: float = 2.0
-    gland_scale: float = 0.5
+    gland_scale: float = 0.4
     marker_radius: float = 2.0
     fov_min: tuple = (-70.0, -40.0, -55.0)
     fov_max: tuple = (70.0, 30.0, 55.0)
@@ -67,7 +67,7 @@ class Slab:
                                + (y / (p - s)) ** 2 <= 1.0)
             g = self.gland_scale
             gland = (((xs - cx) / (g * r)) ** 2 + (z / (g * r)) ** 2
-                     + ((y + 0.4 * p) / (g * p)) ** 2 <= 1.0)
+                     + ((y + 0.5 * p) / (g * p)) ** 2 <= 1.0)
             fine[outer] = 4
             fine[inner] = 1
             fine[inner & gland] = 3
