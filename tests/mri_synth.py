@@ -6,7 +6,8 @@ between positions. Patient frame: LPS mm, x left, y posterior (the breasts point
 z superior; the slab's anterior face is the plane y = 0.
 
 Intensities are fractions of fat: air 0, muscle 0.25, gland 0.6, skin 0.7, fat 1 (T2-like,
-fat bright); ``contrast="t1_fatsat"`` maps them to a fat-suppressed look instead.
+fat bright); ``contrast="t1"`` is T1-like (muscle 0.35, gland 0.45, skin 0.6) and
+``"t1_fatsat"`` a fat-suppressed look (fat 0.35, muscle 0.55, gland 1).
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from registration.transforms import rigid_matrix
 
 AIR, BREAST, MUSCLE, GLAND = 0, 1, 2, 3
 #: Intensity per fine class: air, fat, muscle, gland, skin, marker.
-LEVELS = {"t2": (0.0, 1.0, 0.25, 0.6, 0.7, 1.3), "t1_fatsat": (0.0, 0.35, 0.55, 1.0, 0.8, 1.3)}
+LEVELS = {"t2": (0.0, 1.0, 0.25, 0.6, 0.7, 1.3), "t1": (0.0, 1.0, 0.35, 0.45, 0.6, 1.3),
+          "t1_fatsat": (0.0, 0.35, 0.55, 1.0, 0.8, 1.3)}
 
 
 @dataclass(frozen=True)
