@@ -233,5 +233,7 @@ def run(args: argparse.Namespace) -> int:
         dice = s.get("dice")
         extra = ("; Dice " + ", ".join(f"{k} {v:.3f}" for k, v in dice.items())) if dice else ""
         print(f"{name}: {vol}{extra}")
+        for w in s.get("confidence", {}).get("warnings", []):
+            print(f"  warning: {w}")
     print(f"labels and QA pictures in {args.out}")
     return 0
