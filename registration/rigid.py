@@ -372,7 +372,8 @@ def register_rigid(
         The markers sit on stiff zones (sternum, inframammary folds) and pin the directions
         a smooth chest wall leaves loose (e.g. along the body axis).
     fiducial_error_mm : float
-        Fiducial localisation error (FLE) assumed at least, mm; see :func:`check_registration`.
+        Fiducial localisation error (FLE) assumed at least, mm, and at least half the
+        diagonal of the coarser image's voxel; see :func:`check_registration`.
     shrink, smooth_mm, iterations, sampling, learning_rate_mm, seed, threads
         Multi-resolution schedule (shrink factors, Gaussian sigmas in mm), optimiser
         iterations per level, fraction of mask voxels sampled, first step (mm), the sampling
@@ -430,10 +431,13 @@ def register_rigid(
         notes.append("no consistent fiducials to check the registration against: unchecked")
     else:
         pts = {k: fixed_points[k] for k in used}
+        # A marker's centre is found to a fraction of a voxel at best: half a voxel
+        # diagonal bounds the localisation error from below on coarse grids.
+        voxel = max(max(fixed.GetSpacing()), max(moving.GetSpacing()))
         checks = check_registration(
             tfm, fid, pts, fiducial_residuals(fid, pts, {k: moving_points[k] for k in used}),
             chest_points=None if chest is None else mask_points(chest),
-            fiducial_error_mm=fiducial_error_mm,
+            fiducial_error_mm=max(float(fiducial_error_mm), 0.5 * np.sqrt(3.0) * voxel),
         )
         status = "ok" if checks["passed"] else "flagged"
         for w in checks["failures"]:

@@ -26,14 +26,14 @@ Config (TOML, all optional)::
     mask_margin_mm = 6.0       # chest-wall mask: band behind the muscle, mm
     marker_diameter_mm = 4.0
     fiducial_error_mm = 1.0    # smallest fiducial localisation error the checks assume
-    require_fiducials = false  # stop (error) unless every position passed its checks
+    require_fiducials = false  # stop (error) when a position's check fails ("flagged")
     seed = 20211               # metric sampling seed, >= 1 (0 would mean the wall clock)
     threads = 1                # metric threads (1: the same transform on every machine)
 
 Each position's entry in ``registration.json`` has ``status``: ``"ok"`` (the refined
 transform agrees with the fiducial-only solution at the markers and on the chest wall),
-``"flagged"`` (it does not; the reasons are in ``warnings``) or ``"unchecked"`` (no
-consistent fiducials).
+``"flagged"`` (it does not; the reasons are in ``warnings``) or ``"unchecked"`` (fewer than
+three consistent fiducials found: a warning, not an error).
 """
 
 from __future__ import annotations
@@ -237,7 +237,7 @@ def register_subject(
             entry["rotation_error_deg"] = rotation_error_deg(res.transform, t)
         report["positions"][name] = entry
         write_json(out / "registration.json", report)
-        if require and res.status != "ok":
+        if require and res.status == "flagged":
             why = "; ".join(res.warnings) or res.status
             raise StageError("register", f"position {name!r}: the registration is "
                              f"{res.status} ({why}); with require_fiducials = true it must "
