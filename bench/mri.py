@@ -3,9 +3,8 @@ rigid motion up to 15 deg / 30 mm): segmentation and registration wall time, CPU
 threads of the stage's process), peak memory and the load average around each stage, with 2
 threads, plus their accuracy against the truth. On a shared machine the wall time is
 inflated by the other processes; the CPU time is the figure to compare between runs (with
-2 threads, wall >= CPU / 2 on a quiet machine). The registration is not bit-reproducible
-with 2 threads (the metric's partial sums are added in varying order), so its TRE varies
-between runs by about 0.2 mm.
+2 threads, wall >= CPU / 2 on a quiet machine). The registration's metric runs on one thread
+with a fixed sampling seed, so it gives the same transform on every run.
 
 Usage::
 

@@ -72,8 +72,46 @@ def slice_centre(labels: sitk.Image) -> tuple[int, int, int]:
     return tuple(int(v) for v in np.round(idx.mean(axis=0)))
 
 
+_LETTERS = (("R", "L"), ("A", "P"), ("I", "S"))  # (negative, positive) of LPS x, y, z
+
+
+def _letter(vec) -> str:
+    """Anatomical letter of the LPS axis a direction vector mostly follows."""
+    v = np.asarray(vec, float)
+    k = int(np.argmax(np.abs(v)))
+    return _LETTERS[k][int(v[k] > 0)]
+
+
+#: The three views of :func:`qa_figure`: (name, horizontal index axis, vertical index axis,
+#: row 0 at the top).
+VIEWS = (("axial", 0, 1, True), ("coronal", 0, 2, False), ("sagittal", 1, 2, False))
+
+
+def view_orientation(img: sitk.Image) -> dict[str, dict[str, str]]:
+    """Anatomical letters (L/R, A/P, S/I) at the four edges of each view of :func:`qa_figure`.
+
+    Parameters
+    ----------
+    img : SimpleITK.Image
+        The volume (its direction matrix decides).
+
+    Returns
+    -------
+    dict view name -> {"left", "right", "top", "bottom"} -> letter
+    """
+    d = np.asarray(img.GetDirection(), float).reshape(3, 3)
+    out = {}
+    for name, h, v, top_first in VIEWS:
+        first_v, last_v = _letter(-d[:, v]), _letter(d[:, v])
+        out[name] = {"left": _letter(-d[:, h]), "right": _letter(d[:, h]),
+                     "top": first_v if top_first else last_v,
+                     "bottom": last_v if top_first else first_v}
+    return out
+
+
 def qa_figure(img: sitk.Image, labels: sitk.Image, *, seeds=None, centre=None, title=""):
-    """Axial, sagittal and coronal slices of ``img`` with label contours.
+    """Axial, sagittal and coronal slices of ``img`` with label contours and the anatomical
+    letters (L/R, A/P, S/I, from the image's direction matrix) at the edges of each view.
 
     Parameters
     ----------
@@ -102,6 +140,7 @@ def qa_figure(img: sitk.Image, labels: sitk.Image, *, seeds=None, centre=None, t
         ("sagittal", a[:, :, cx], lab[:, :, cx], sz / sy),
     ]
     lo, hi = np.percentile(np.concatenate([v[1].ravel() for v in views]), [1, 99.5])
+    orient = view_orientation(img)
     fig = Figure(figsize=(13, 4.5))
     colours = {1: "tab:orange", 2: "tab:red", 3: "tab:green"}
     for ax, (name, im, lb, aspect) in zip(fig.subplots(1, 3), views):
@@ -114,6 +153,12 @@ def qa_figure(img: sitk.Image, labels: sitk.Image, *, seeds=None, centre=None, t
                 ax.contour(m.astype(float), levels=[0.5], colors=col, linewidths=0.8)
         ax.set_title(name)
         ax.set_axis_off()
+        for edge, (x, y, ha, va) in {"left": (0.01, 0.5, "left", "center"),
+                                     "right": (0.99, 0.5, "right", "center"),
+                                     "top": (0.5, 0.99, "center", "top"),
+                                     "bottom": (0.5, 0.01, "center", "bottom")}.items():
+            ax.text(x, y, orient[name][edge], transform=ax.transAxes, ha=ha, va=va,
+                    color="yellow", fontsize=11, fontweight="bold")
     if seeds is not None and len(seeds):
         idx = np.asarray([img.TransformPhysicalPointToContinuousIndex(tuple(map(float, p)))
                           for p in np.asarray(seeds, float)])

@@ -37,6 +37,17 @@ log = logging.getLogger(__name__)
 
 BACKGROUND, BREAST, MUSCLE, GLAND = 0, 1, 2, 3
 
+#: Smallest accepted contrast-to-noise ratio between body (fat) and background.
+MIN_CNR = 5.0
+#: Fewest 4^3-voxel blocks of pure (>= 90 %) background, and of pure tissue, in a body MRI.
+MIN_BLOCKS = 8
+#: Plausible breast-tissue volume of one scan, ml (both sides; a small phantom has ~20 ml).
+BREAST_ML_RANGE = (5.0, 6000.0)
+
+
+class SegmentationError(ValueError):
+    """The volume cannot be segmented; the message names the file and the problem."""
+
 
 @dataclass(frozen=True)
 class Seed:
@@ -64,7 +75,9 @@ class SegmentationResult:
     markers_mm : (K, 3) ndarray
         Skin-marker centres removed from the body.
     notes : tuple of str
-        What the user should know (seeds applied, fallbacks).
+        What the user should know (seeds applied, fallbacks, low confidence).
+    confidence : dict
+        The segmentation's own confidence (see :func:`segmentation_confidence`).
     """
 
     labels: sitk.Image
@@ -73,6 +86,7 @@ class SegmentationResult:
     midline_x_mm: float = 0.0
     markers_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     notes: tuple = ()
+    confidence: dict = field(default_factory=dict)
 
 
 def _ball(radius_mm: float, spacing_zyx: np.ndarray) -> np.ndarray:
@@ -102,6 +116,24 @@ def _touching(lab: np.ndarray, n: int, region: np.ndarray) -> np.ndarray:
     hit[np.unique(lab[near & (lab > 0)])] = True
     hit[0] = False
     return hit
+
+
+def _muscle_start(mid: np.ndarray, thorax: np.ndarray, spacing_zyx: np.ndarray,
+                  min_mm: float) -> tuple[np.ndarray, bool]:
+    """The chest wall's start: the thick parts (opening by a ball of ``min_mm / 2``) of the
+    mid-intensity layer that touch the thorax interior, else the largest thick part.
+    Returns the mask and whether it is the largest-part fallback."""
+    thick = ndimage.binary_opening(mid, structure=_ball(min_mm / 2, spacing_zyx))
+    tlab, tn = _components(thick)
+    if thorax.any():
+        muscle = _touching(tlab, tn, thorax)[tlab]
+        if muscle.any():
+            return muscle, False
+    if tn == 0:
+        return np.zeros(mid.shape, bool), True
+    tsizes = np.bincount(tlab.ravel())
+    tsizes[0] = 0
+    return tlab == int(tsizes.argmax()), True
 
 
 def levelset_refine(
@@ -184,6 +216,7 @@ def segment_volume(
     curvature: float = 0.5,
     marker_diameter_mm: float = 4.0,
     min_region_mm3: float = 500.0,
+    muscle_min_mm: float = 3.0,
     name: str = "volume",
 ) -> SegmentationResult:
     """Segment breast tissue, muscle (and optionally gland) in one MRI volume.
@@ -208,6 +241,9 @@ def segment_volume(
         Skin-marker diameter (markers are removed from the body).
     min_region_mm3 : float
         Dark regions smaller than this are noise inside tissue, not air or thorax.
+    muscle_min_mm : float
+        Mid-intensity layers thinner than this (skin, partial volume) cannot start the
+        muscle; the muscle's active contour still reaches them.
     name : str
         Name for messages (the file path).
 
@@ -215,10 +251,15 @@ def segment_volume(
     -------
     SegmentationResult
     """
-    check_volume(img, name=name, stage=STAGE)
-    pre = preprocess(img, n4=n4, n4_shrink=n4_shrink, isotropic_mm=isotropic_mm,
-                     denoise_iterations=denoise_iterations, denoise_method=denoise_method,
-                     name=name)
+    try:
+        check_volume(img, name=name, stage=STAGE)
+        pre = preprocess(img, n4=n4, n4_shrink=n4_shrink, isotropic_mm=isotropic_mm,
+                         denoise_iterations=denoise_iterations, denoise_method=denoise_method,
+                         name=name)
+    except SegmentationError:
+        raise
+    except ValueError as exc:
+        raise SegmentationError(str(exc)) from None
     a = sitk.GetArrayFromImage(pre)
     sp = np.asarray(pre.GetSpacing(), float)[::-1]  # (z, y, x)
     vox_mm3 = float(np.prod(sp))
@@ -228,6 +269,7 @@ def segment_volume(
     lv = {"air": 0.0, "thorax": 0.1, "muscle": 0.25, "fat": 1.0, "skin": skin_level}
     t_dark = 0.5 * (lv["thorax"] + lv["muscle"])
     t_bright = 0.5 * (lv["muscle"] + lv["fat"])
+    by_edge = False
     for _ in range(2):
         dark = a < t_dark
         lab, n = _components(dark)
@@ -240,6 +282,10 @@ def segment_volume(
         # (on every second voxel: the shell 2-6 voxels out is what matters, not its detail)
         sub_lab, sub_a = lab[::2, ::2, ::2], a[::2, ::2, ::2]
         objs = ndimage.find_objects(sub_lab)
+        edge_hit = np.zeros(n + 1, bool)
+        for face in (lab[0], lab[-1], lab[:, 0], lab[:, -1], lab[:, :, 0], lab[:, :, -1]):
+            edge_hit[np.unique(face)] = True
+        rings: dict[int, float] = {}
         for k in big:
             if objs[k - 1] is None:
                 continue
@@ -249,22 +295,36 @@ def segment_volume(
             ring = float(np.mean(sub_a[sl][shell])) if shell.any() else 1.0
             target = air if ring > 0.5 * (lv["muscle"] + lv["skin"]) else thorax
             target |= lab == k
+            rings[k] = ring
         if not air.any():
-            raise ValueError(f"{STAGE}: {name}: no air found around the body (is this a "
-                             "body MRI with background?)")
+            # Muscle meeting air (no thorax shell): every dark region touches some muscle.
+            # The background is then the region reaching the field-of-view boundary whose
+            # surroundings are brightest (skin and fat around it).
+            edge = [k for k in rings if edge_hit[k]]
+            if not edge:
+                raise SegmentationError(
+                    f"{STAGE}: {name}: no background (air) reaches the edge of the field of "
+                    "view (is this a body MRI with air around it?)")
+            k = max(edge, key=lambda j: (rings[j], sizes[j]))
+            air |= lab == k
+            thorax &= lab != k
+            by_edge = True
         lv["air"] = _interior_median(a, air, lv["air"])
         if thorax.any():
             lv["thorax"] = _interior_median(a, thorax, lv["thorax"])
         bright = (a > t_bright) & ~air
         lv["fat"] = _interior_median(a, bright, lv["fat"])
         mid = ~air & ~thorax & ~bright
-        if thorax.any():
-            mlab, mn = _components(mid)
-            touch = _touching(mlab, mn, thorax)
-            muscle0 = touch[mlab]
+        muscle0 = _muscle_start(mid, thorax, sp, muscle_min_mm)[0]
+        if muscle0.any():
             lv["muscle"] = _interior_median(a, muscle0, lv["muscle"])
+        if not thorax.any():  # muscle meets air: the dark side of the muscle is air
+            lv["thorax"] = lv["air"]
         t_dark = 0.5 * (lv["thorax"] + lv["muscle"])
         t_bright = 0.5 * (lv["muscle"] + lv["fat"])
+    if by_edge:
+        notes.append("background taken from the field-of-view boundary (no dark region is "
+                     "surrounded by skin: muscle meets air?)")
     # Noise voxels above the threshold inside the thorax interior are not tissue.
     thorax = ndimage.binary_fill_holes(thorax)
     t_air = 0.5 * (lv["air"] + skin_level * lv["fat"])
@@ -272,7 +332,20 @@ def segment_volume(
 
     body = ~air
     if not body.any():
-        raise ValueError(f"{STAGE}: {name}: empty body mask")
+        raise SegmentationError(f"{STAGE}: {name}: empty body mask")
+    blocks = coherent_blocks(air)
+    if min(blocks) < MIN_BLOCKS:
+        raise SegmentationError(
+            f"{STAGE}: {name}: no body found: {blocks[0]} block(s) of 4^3 voxels are "
+            f"background and {blocks[1]} are tissue, at 90 % or more (at least {MIN_BLOCKS} "
+            "of each expected; is this volume noise only?)")
+    cnr = contrast_to_noise(a, air, lv)
+    if cnr < MIN_CNR:
+        raise SegmentationError(
+            f"{STAGE}: {name}: no body found: the contrast between the brightest tissue and "
+            f"the background is {cnr:.1f} times the background noise (at least {MIN_CNR:g} "
+            "expected; is this volume noise only, or all tissue?)")
+    body_start = body.copy()
 
     # Skin markers: bright blobs outside the (opened) body; remove a ball around each.
     opened = body_without_markers(body, spacing=sp[::-1], diameter_mm=marker_diameter_mm)
@@ -292,39 +365,45 @@ def segment_volume(
             sl = tuple(slice(x, y) for x, y in zip(lo, hi))
             marker_mask[sl] |= (d2 <= r * r) & ~opened[sl]
 
-    # Active contour on the air: settles the skin surface at the air/skin midpoint.
-    air = levelset_refine(pre, air, lower=-np.inf, upper=t_air,
+    # Active contour on the air: settles the skin surface at the air/skin midpoint and, where
+    # the muscle meets air, the muscle surface at the air/muscle midpoint (the feature is
+    # scaled there so that one threshold serves both).
+    feature = pre
+    if muscle0.any() and t_dark < t_air:
+        near = ndimage.binary_dilation(muscle0, structure=_ball(muscle_min_mm, sp))
+        scale = np.where(near, np.float32(t_air / max(t_dark, 1e-3)), np.float32(1.0))
+        feature = sitk.GetImageFromArray(a * scale)
+        feature.CopyInformation(pre)
+    air = levelset_refine(feature, air, lower=-np.inf, upper=t_air,
                           iterations=levelset_iterations, curvature=curvature)
     air |= marker_mask
     # Keep the air that touches the original air (the level set may open small pockets).
     body = ~air
     blab, bn = _components(body)
     if bn == 0:
-        raise ValueError(f"{STAGE}: {name}: empty body mask after removing air and markers")
+        raise SegmentationError(f"{STAGE}: {name}: empty body mask after removing air and markers")
     bsizes = np.bincount(blab.ravel())
     bsizes[0] = 0
     body = blab == int(bsizes.argmax())
     thorax &= body
 
     # Chest-wall band: mid-intensity layer touching the thorax interior.
+    # Thin mid-intensity shells (skin, partial volume at the skin) are cut off first: where
+    # the muscle meets air, the skin of the breasts meets the muscle at their base.
     mid = body & ~thorax & (a <= t_bright)
     mlab, mn = _components(mid)
-    if thorax.any():
-        muscle = _touching(mlab, mn, thorax)[mlab]
-    else:
-        notes.append("no thorax interior found; muscle = largest mid-intensity region")
-        msizes = np.bincount(mlab.ravel())
-        msizes[0] = 0
-        muscle = mlab == int(msizes.argmax()) if mn else np.zeros(a.shape, bool)
+    muscle, largest = _muscle_start(mid, thorax, sp, muscle_min_mm)
+    if largest:
+        notes.append("no thorax interior found; muscle = largest thick mid-intensity region")
 
     # Seeds: reassign the connected region (of its intensity class) that holds each seed.
     for s in seeds:
         if s.label not in (BACKGROUND, BREAST, MUSCLE, GLAND):
-            raise ValueError(f"{STAGE}: seed label must be 0, 1, 2 or 3, got {s.label}")
+            raise SegmentationError(f"{STAGE}: seed label must be 0, 1, 2 or 3, got {s.label}")
         c = np.round(pre.TransformPhysicalPointToContinuousIndex(tuple(map(float, s.point))))
         k = tuple(int(v) for v in c[::-1])
         if any(i < 0 or i >= n for i, n in zip(k, a.shape)):
-            raise ValueError(f"{STAGE}: seed {s.point} mm lies outside {name}")
+            raise SegmentationError(f"{STAGE}: seed {s.point} mm lies outside {name}")
         if mlab[k] > 0:
             region = mlab == mlab[k]
         elif thorax[k]:
@@ -344,11 +423,18 @@ def segment_volume(
         notes.append(f"seed {s.point} -> label {s.label} ({int(region.sum())} voxels)")
 
     if not muscle.any():
-        raise ValueError(f"{STAGE}: {name}: no muscle / chest wall found")
+        raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall found")
+    muscle_start = muscle.copy()
     # Active contour on the muscle: boundaries settle at the thorax and fat midpoints.
     muscle = levelset_refine(pre, muscle, lower=t_dark, upper=t_bright,
                              iterations=levelset_iterations, curvature=curvature)
     muscle &= body & ~marker_mask
+    if not muscle.any():
+        raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
+                                "active contour")
+    # Partial-volume voxels where the muscle meets air are darker than any skin: muscle.
+    rim = body & ~thorax & ~muscle & ~marker_mask & (a < t_air)
+    muscle |= rim & ndimage.binary_dilation(muscle)
     thorax &= ~muscle
 
     labels = np.zeros(a.shape, np.uint8)
@@ -384,8 +470,86 @@ def segment_volume(
     if isotropic_mm is not None:
         out = sitk.Resample(out, img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
                             sitk.sitkUInt8)
+    conf = segmentation_confidence(
+        cnr=cnr, body=(body_start, body), muscle=(muscle_start, muscle),
+        breast_ml=float(np.count_nonzero((labels == BREAST) | (labels == GLAND)))
+        * vox_mm3 / 1000.0)
+    notes += conf["warnings"]
     return SegmentationResult(out, pre, {k: float(v) for k, v in lv.items()}, midline,
-                              np.asarray(markers_mm), tuple(notes))
+                              np.asarray(markers_mm), tuple(notes), conf)
+
+
+def coherent_blocks(air: np.ndarray, *, block: int = 4, share: float = 0.9) -> tuple[int, int]:
+    """Number of ``block``^3-voxel blocks that are background (``air``) for at least
+    ``share`` of their voxels, and of those that are tissue for as much. A scan has whole
+    regions of each; in pure noise the classes interleave voxel by voxel and neither has
+    any."""
+    n = [s // block * block for s in air.shape]
+    if min(n) == 0:
+        return 0, 0
+    sub = air[: n[0], : n[1], : n[2]].reshape(n[0] // block, block, n[1] // block, block,
+                                             n[2] // block, block)
+    frac = sub.mean(axis=(1, 3, 5))
+    return int(np.count_nonzero(frac >= share)), int(np.count_nonzero(frac <= 1 - share))
+
+
+def contrast_to_noise(a: np.ndarray, air: np.ndarray, levels: dict) -> float:
+    """(fat - air) level over the background noise (1.4826 x the median absolute deviation
+    inside the air, two voxels in from its edge), on every second voxel."""
+    sub = ndimage.binary_erosion(air[::2, ::2, ::2], iterations=2)
+    v = a[::2, ::2, ::2][sub] if np.count_nonzero(sub) > 50 else a[air]
+    if v.size == 0:
+        return 0.0
+    sigma = 1.4826 * float(np.median(np.abs(v - np.median(v))))
+    gap = float(levels["fat"] - levels["air"])
+    return float(min(gap / max(sigma, 1e-6 * max(abs(gap), 1e-12)), 1e6))
+
+
+def _dice(x: np.ndarray, y: np.ndarray) -> float:
+    n = int(np.count_nonzero(x)) + int(np.count_nonzero(y))
+    return 1.0 if n == 0 else 2.0 * int(np.count_nonzero(x & y)) / n
+
+
+def segmentation_confidence(
+    *,
+    cnr: float,
+    body: tuple[np.ndarray, np.ndarray],
+    muscle: tuple[np.ndarray, np.ndarray],
+    breast_ml: float,
+    min_agreement: float = 0.9,
+) -> dict:
+    """How far to trust a segmentation, from what it knows itself.
+
+    Parameters
+    ----------
+    cnr : float
+        Contrast-to-noise ratio of tissue against background (:func:`contrast_to_noise`).
+    body, muscle : (start, final) pairs of bool arrays
+        Each region's threshold initialisation and its active-contour result: two
+        segmentations of one region from two methods; their Dice is the agreement.
+    breast_ml : float
+        Breast tissue volume (labels 1 and 3), ml.
+    min_agreement : float
+        Dice below which a region's agreement is a warning.
+
+    Returns
+    -------
+    dict
+        ``cnr``, ``agreement`` (Dice per region), ``breast_ml``, ``breast_ml_plausible``
+        (within ``BREAST_ML_RANGE``), ``warnings`` and ``confident`` (no warning).
+    """
+    agree = {"body": _dice(*body), "muscle": _dice(*muscle)}
+    lo, hi = BREAST_ML_RANGE
+    plausible = lo <= breast_ml <= hi
+    warnings = [f"low confidence: the {k}'s active contour and its threshold start agree "
+                f"only to Dice {v:.3f} (< {min_agreement})"
+                for k, v in agree.items() if v < min_agreement]
+    if not plausible:
+        warnings.append(f"low confidence: {breast_ml:.1f} ml of breast tissue is outside the "
+                        f"plausible {lo:g}-{hi:g} ml")
+    return {"cnr": float(cnr), "agreement": agree, "breast_ml": float(breast_ml),
+            "breast_ml_plausible": bool(plausible), "warnings": warnings,
+            "confident": not warnings}
 
 
 def breast_volumes_by_side(labels: sitk.Image, midline_x_mm: float) -> dict[str, float]:

@@ -30,6 +30,8 @@ from __future__ import annotations
 
 import csv
 import math
+import os
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,7 +40,7 @@ from typing import Any
 import numpy as np
 import SimpleITK as sitk
 
-from imaging.io import VolumeError, read_volume
+from imaging.io import VolumeError, check_path, read_volume
 
 __all__ = ["SubjectError", "Position", "Subject", "read_subject", "read_points_csv"]
 
@@ -47,6 +49,8 @@ _POSITION_KEYS = {"volume", "gravity", "notes", "tilt_deg"}
 _CSV_COLUMNS = ["position", "label", "x", "y", "z"]
 #: Largest accepted deviation of |gravity| from 1.
 GRAVITY_TOLERANCE = 1e-3
+#: A position name is an identifier: it names output files, so no path separators or dots.
+POSITION_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,63}")
 
 
 class SubjectError(ValueError):
@@ -132,6 +136,11 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
         On the first problem found, naming the file and what is wrong.
     """
     root = Path(folder)
+    try:
+        check_path(root)
+    except VolumeError:
+        raise SubjectError(f"subject folder {os.fspath(root)!a}: the path is not valid UTF-8; "
+                           "rename it") from None
     if not root.is_dir():
         raise SubjectError(f"subject folder {root} does not exist")
     toml_path = root / "subject.toml"
@@ -140,8 +149,10 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
     try:
         with toml_path.open("rb") as f:
             meta = tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise SubjectError(f"{toml_path}: not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise SubjectError(f"{toml_path}: cannot be read ({exc.strerror})") from None
     _check_keys(meta, _TOP_KEYS, f"{toml_path}")
     sid = meta.get("subject")
     if not isinstance(sid, str) or not sid.strip():
@@ -155,6 +166,9 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
         positions[name] = _read_position(root, toml_path, name, entry)
 
     reference = meta.get("reference", "supine" if "supine" in positions else None)
+    if reference is not None and not isinstance(reference, str):
+        raise SubjectError(f"{toml_path}: 'reference' must be a position name (a string), "
+                           f"got {reference!r}")
     if reference is None:
         raise SubjectError(
             f"{toml_path}: no 'reference' given and no 'supine' position to default to"
@@ -194,6 +208,11 @@ def _check_keys(table: dict, allowed: set[str], where: str) -> None:
 
 def _read_position(root: Path, toml_path: Path, name: str, entry: Any) -> Position:
     where = f"{toml_path} [positions.{name}]"
+    if not POSITION_NAME.fullmatch(name):
+        raise SubjectError(
+            f"{toml_path}: position name {name!r} is not an identifier (a letter, then "
+            "letters, digits, '_' or '-', at most 64): it names output files"
+        )
     if not isinstance(entry, dict):
         raise SubjectError(f"{where}: must be a table")
     _check_keys(entry, _POSITION_KEYS, where)
@@ -201,6 +220,8 @@ def _read_position(root: Path, toml_path: Path, name: str, entry: Any) -> Positi
     if not isinstance(volume, str) or not volume:
         raise SubjectError(f"{where}: 'volume' (file or DICOM folder name) is missing")
     path = Path(volume) if Path(volume).is_absolute() else root / volume
+    if "\0" in volume:
+        raise SubjectError(f"{where}: 'volume' holds a NUL character")
     if not path.exists():
         raise SubjectError(f"{where}: volume {path} does not exist")
     g = entry.get("gravity")

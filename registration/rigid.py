@@ -15,11 +15,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import SimpleITK as sitk
+from scipy import ndimage
 
 from registration.qa import fiducial_residuals
-from registration.transforms import STAGE, rigid_matrix
+from registration.transforms import STAGE, rigid_matrix, transform_points
 
 log = logging.getLogger(__name__)
+
+#: Seed of the metric's random sampling. Never 0: SimpleITK reads 0 as "seed from the wall
+#: clock" (``sitk.sitkWallClock``), which makes every run differ.
+DEFAULT_SEED = 20211
 
 
 @dataclass(frozen=True)
@@ -31,7 +36,7 @@ class RigidResult:
     transform : SimpleITK.Euler3DTransform
         Reference frame -> moving image frame, mm.
     initialisation : str
-        ``"fiducials"`` or ``"moments"``.
+        ``"fiducials"``, ``"moments"`` or ``"given"`` (a start passed by the caller).
     fiducial_residuals : dict label -> float
         ``|T(fixed) - moving|`` in mm after refinement, for the shared labels.
     used_labels : tuple of str
@@ -39,7 +44,14 @@ class RigidResult:
     metric : float
         Final correlation metric (negative: -1 is perfect).
     warnings : tuple of str
-        Human-readable notes (fallbacks, dropped markers).
+        Human-readable notes (fallbacks, dropped markers, failed checks).
+    status : str
+        ``"ok"`` (checked against the fiducials and passed), ``"flagged"`` (a check failed)
+        or ``"unchecked"`` (no consistent fiducials).
+    checks : dict
+        Outcome of :func:`check_registration` (empty when unchecked).
+    fiducial_transform : SimpleITK.Euler3DTransform or None
+        The fiducial-only solution.
     """
 
     transform: sitk.Transform
@@ -48,6 +60,16 @@ class RigidResult:
     used_labels: tuple = ()
     metric: float = float("nan")
     warnings: tuple = ()
+    status: str = "unchecked"
+    checks: dict = field(default_factory=dict)
+    fiducial_transform: sitk.Transform | None = None
+
+
+def _check_seed(seed) -> None:
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not (
+            1 <= seed < 2**31):
+        raise ValueError(f"{STAGE}: the sampling seed must be an integer in [1, 2^31), got "
+                         f"{seed!r} (0 would seed from the wall clock: every run would differ)")
 
 
 def _to_euler(tfm: sitk.Transform, center: np.ndarray) -> sitk.Euler3DTransform:
@@ -198,8 +220,9 @@ def refine_rigid(
     iterations: int = 50,
     sampling: float = 0.1,
     learning_rate_mm: float = 0.5,
-    seed: int = 0,
+    seed: int = DEFAULT_SEED,
     crop: bool = True,
+    threads: int = 1,
 ) -> tuple[sitk.Euler3DTransform, float]:
     """Maximise normalised correlation (SimpleITK ``Correlation`` metric) over a rigid
     transform, coarse to fine, sampling only inside ``fixed_mask``.
@@ -229,14 +252,19 @@ def refine_rigid(
         shrunk by ``s`` starts with steps of ``s * learning_rate_mm`` (its voxels are
         ``s`` times larger and it starts farther from the answer).
     seed : int
-        Seed of the random sampling.
+        Seed of the random sampling, >= 1 (0 would mean "from the wall clock").
     crop : bool
         Crop both images around the mask first.
+    threads : int
+        Threads of the metric. One (the default) makes the result independent of the
+        machine: the metric's per-thread partial sums are added in an order that depends on
+        how the work is split.
 
     Returns
     -------
     transform, final metric value
     """
+    _check_seed(seed)
     if len(shrink) != len(smooth_mm) or not shrink:
         raise ValueError(f"{STAGE}: shrink {shrink} and smooth_mm {smooth_mm} need one entry "
                          "per level")
@@ -259,6 +287,7 @@ def refine_rigid(
         f = _pyramid_level(fixed, s, sigma)
         m = _pyramid_level(moving, s, sigma)
         reg = sitk.ImageRegistrationMethod()
+        reg.SetNumberOfThreads(int(threads))
         reg.SetMetricAsCorrelation()
         if fixed_mask is not None:
             reg.SetMetricFixedMask(sitk.Resample(fixed_mask, f, sitk.Transform(),
@@ -307,17 +336,21 @@ def register_rigid(
     fixed_points: Mapping[str, np.ndarray] | None = None,
     moving_points: Mapping[str, np.ndarray] | None = None,
     fixed_mask: sitk.Image | None = None,
+    initial: sitk.Transform | None = None,
     max_residual_mm: float = 3.0,
     marker_mask_mm: float = 8.0,
+    fiducial_error_mm: float = 1.0,
     shrink: tuple[int, ...] = (4, 2, 1),
     smooth_mm: tuple[float, ...] = (2.0, 1.0, 0.0),
     iterations: int = 50,
     sampling: float = 0.1,
     learning_rate_mm: float = 0.5,
     fine_levels: int = 2,
-    seed: int = 0,
+    seed: int = DEFAULT_SEED,
+    threads: int = 1,
 ) -> RigidResult:
-    """Register ``moving`` onto ``fixed`` (the reference) rigidly.
+    """Register ``moving`` onto ``fixed`` (the reference) rigidly, then check the result
+    against the fiducial-only solution.
 
     Parameters
     ----------
@@ -327,68 +360,210 @@ def register_rigid(
     fixed_points, moving_points : mapping label -> (3,) mm, optional
         Fiducials of each volume in its own physical frame.
     fixed_mask : SimpleITK.Image, optional
-        Chest-wall mask on the reference grid; only it drives the correlation.
+        Chest-wall mask on the reference grid (breasts masked out, see
+        :func:`chest_wall_mask`); only it drives the correlation.
+    initial : SimpleITK.Transform, optional
+        A start that replaces the fiducial initialisation (the fiducials still check the
+        result).
     max_residual_mm : float
         Fiducial consistency threshold for the landmark initialisation.
     marker_mask_mm : float
         Radius of balls around the used reference fiducials added to the mask (0: none).
         The markers sit on stiff zones (sternum, inframammary folds) and pin the directions
         a smooth chest wall leaves loose (e.g. along the body axis).
-    shrink, smooth_mm, iterations, sampling, learning_rate_mm, seed
+    fiducial_error_mm : float
+        Fiducial localisation error (FLE) assumed at least, mm, and at least half the
+        diagonal of the coarser image's voxel; see :func:`check_registration`.
+    shrink, smooth_mm, iterations, sampling, learning_rate_mm, seed, threads
         Multi-resolution schedule (shrink factors, Gaussian sigmas in mm), optimiser
-        iterations per level, fraction of mask voxels sampled, first step (mm) and the
-        sampling seed; see :func:`refine_rigid`.
+        iterations per level, fraction of mask voxels sampled, first step (mm), the sampling
+        seed and the metric's threads; see :func:`refine_rigid`.
     fine_levels : int
         How many of the finest levels the masked chest-wall refinement runs. Its start is
         already close (the fiducials, or the moments start after a whole-body pass over the
         coarser levels), and a coarse level's blurred optimum would pull it away along the
-        directions a smooth chest wall leaves loose. Measured on the 256^3 phantom with
-        fiducials: TRE 0.03-0.17 mm over repeated runs with two levels, 0.3-0.5 mm with all
-        three; on the small phantom's moments fallback 0.05-0.35 mm against 0.2-1.0 mm. The
-        runs differ because the threads' partial sums of the metric arrive in varying
-        order.
+        directions a smooth chest wall leaves loose.
 
     Returns
     -------
     RigidResult
+        ``status`` is ``"ok"`` when the checks passed, ``"flagged"`` when one failed (the
+        reasons are in ``warnings``) and ``"unchecked"`` without fiducials to check against.
     """
+    _check_seed(seed)
     notes: list[str] = []
-    init, used = None, ()
+    fid, used = None, ()
     if fixed_points and moving_points:
-        init, used, more = landmark_transform(
+        fid, used, more = landmark_transform(
             fixed_points, moving_points, max_residual_mm=max_residual_mm
         )
         notes += more
     else:
         notes.append("no fiducials")
-    how = "fiducials"
-    if init is None:
+    opts = dict(iterations=iterations, sampling=sampling, learning_rate_mm=learning_rate_mm,
+                seed=seed, threads=threads)
+    if initial is not None:
+        how = "given"
+        init = _to_euler(initial, np.zeros(3) if fid is None else np.asarray(fid.GetCenter()))
+    elif fid is not None:
+        how, init = "fiducials", fid
+    else:
         how = "moments"
         notes.append("falling back to a moments/multi-start initialisation: check the result")
-        for n in notes:
-            log.warning("%s: %s", STAGE, n)
         init = moments_transform(fixed, moving, fixed_mask=fixed_mask)
         # Coarse whole-image pass first: a chest wall alone can be nearly symmetric (e.g.
         # along the body axis), so far from the answer the whole body guides better.
         init, _ = refine_rigid(fixed, moving, init, fixed_mask=None, shrink=shrink[:-1] or shrink,
-                               smooth_mm=smooth_mm[:-1] or smooth_mm, iterations=iterations,
-                               sampling=sampling, learning_rate_mm=learning_rate_mm,
-                               seed=seed)
-    else:
-        for n in notes:
-            log.warning("%s: %s", STAGE, n)
-    if fixed_mask is not None and how == "fiducials" and marker_mask_mm > 0:
+                               smooth_mm=smooth_mm[:-1] or smooth_mm, **opts)
+    for n in notes:
+        log.warning("%s: %s", STAGE, n)
+    chest = fixed_mask
+    if fixed_mask is not None and fid is not None and marker_mask_mm > 0:
         fixed_mask = add_balls(fixed_mask, [fixed_points[k] for k in used], marker_mask_mm)
     # Either start is close by now (the fiducials, or the moments start after the
     # whole-body pass): the masked refinement runs the finest levels only.
     k = max(1, int(fine_levels))
-    shrink, smooth_mm = tuple(shrink)[-k:], tuple(smooth_mm)[-k:]
-    tfm, metric = refine_rigid(
-        fixed, moving, init, fixed_mask=fixed_mask, shrink=shrink, smooth_mm=smooth_mm,
-        iterations=iterations, sampling=sampling, learning_rate_mm=learning_rate_mm, seed=seed,
-    )
+    tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=fixed_mask,
+                               shrink=tuple(shrink)[-k:], smooth_mm=tuple(smooth_mm)[-k:], **opts)
     res = fiducial_residuals(tfm, fixed_points or {}, moving_points or {})
-    return RigidResult(tfm, how, res, used, metric, tuple(notes))
+    if fid is None:
+        checks, status = {}, "unchecked"
+        notes.append("no consistent fiducials to check the registration against: unchecked")
+    else:
+        pts = {k: fixed_points[k] for k in used}
+        # A marker's centre is found to a fraction of a voxel at best: half a voxel
+        # diagonal bounds the localisation error from below on coarse grids.
+        voxel = max(max(fixed.GetSpacing()), max(moving.GetSpacing()))
+        checks = check_registration(
+            tfm, fid, pts, fiducial_residuals(fid, pts, {k: moving_points[k] for k in used}),
+            chest_points=None if chest is None else mask_points(chest),
+            fiducial_error_mm=max(float(fiducial_error_mm), 0.5 * np.sqrt(3.0) * voxel),
+        )
+        status = "ok" if checks["passed"] else "flagged"
+        for w in checks["failures"]:
+            log.warning("%s: %s", STAGE, w)
+            notes.append(w)
+    return RigidResult(tfm, how, res, used, metric, tuple(notes), status=status,
+                       checks=checks, fiducial_transform=fid)
+
+
+def mask_points(mask: sitk.Image, *, max_points: int = 4000) -> np.ndarray:
+    """(N,3) physical points (mm) of at most ``max_points`` voxels of a binary mask, evenly
+    strided in memory order (deterministic)."""
+    idx = np.flatnonzero(sitk.GetArrayViewFromImage(mask).ravel() > 0)
+    if len(idx) == 0:
+        return np.zeros((0, 3))
+    idx = idx[:: max(1, len(idx) // max_points)]
+    zyx = np.stack(np.unravel_index(idx, sitk.GetArrayViewFromImage(mask).shape), axis=1)
+    d = np.asarray(mask.GetDirection(), float).reshape(3, 3)
+    return (zyx[:, ::-1] * np.asarray(mask.GetSpacing())) @ d.T + np.asarray(mask.GetOrigin())
+
+
+def predicted_tre(points: np.ndarray, fiducials: np.ndarray, fle_mm: float) -> np.ndarray:
+    """Expected target registration error (mm) of a point-based rigid fit at ``points``.
+
+    Fitzpatrick, West & Maurer (1998): TRE^2(r) = FLE^2 / N (1 + 1/3 sum_k d_k^2 / f_k^2),
+    with d_k the distance of r from the k-th principal axis of the N fiducials and f_k the
+    RMS distance of the fiducials from that axis.
+
+    Parameters
+    ----------
+    points : (M, 3) float
+        Targets, mm.
+    fiducials : (N, 3) float
+        Fiducial positions, mm (N >= 3).
+    fle_mm : float
+        Fiducial localisation error (RMS), mm.
+
+    Returns
+    -------
+    (M,) float, mm
+    """
+    f = np.asarray(fiducials, float)
+    c = f.mean(axis=0)
+    _, _, vt = np.linalg.svd(f - c)
+    fp = (f - c) @ vt.T
+    rp = (np.asarray(points, float).reshape(-1, 3) - c) @ vt.T
+    # squared distance from axis k = sum of the squared other two coordinates
+    d2 = (rp ** 2).sum(axis=1, keepdims=True) - rp ** 2
+    f2 = np.maximum(((fp ** 2).sum(axis=1, keepdims=True) - fp ** 2).mean(axis=0), 1e-6)
+    return fle_mm * np.sqrt((1.0 + (d2 / f2).sum(axis=1) / 3.0) / len(f))
+
+
+def check_registration(
+    refined: sitk.Transform,
+    fiducial_only: sitk.Transform,
+    fixed_points: Mapping[str, np.ndarray],
+    fiducial_only_residuals: Mapping[str, float],
+    *,
+    chest_points: np.ndarray | None = None,
+    fiducial_error_mm: float = 1.0,
+    sigmas: float = 3.0,
+) -> dict:
+    """Check a refined registration against the fiducial-only solution.
+
+    Two rules, both in the reference frame:
+
+    - at the markers, the refined transform may not move a fiducial by more than the
+      localisation error (FLE) away from where the fiducial-only solution puts it;
+    - on the chest wall (``chest_points``), the two may not differ by more than ``sigmas``
+      times the error expected of the fiducial-only fit there (:func:`predicted_tre`).
+
+    The FLE is ``fiducial_error_mm`` or the one the fiducial fit's residuals imply
+    (``FRE_rms / sqrt(1 - 2/N)``), whichever is larger.
+
+    Parameters
+    ----------
+    refined, fiducial_only : SimpleITK.Transform
+        Reference -> moving transforms.
+    fixed_points : mapping label -> (3,) mm
+        The fiducials that made ``fiducial_only``, in the reference frame.
+    fiducial_only_residuals : mapping label -> float
+        Residuals (mm) of the fiducial-only fit.
+    chest_points : (M, 3) float, optional
+        Chest-wall points of the reference, mm.
+    fiducial_error_mm : float
+        Smallest FLE assumed, mm.
+    sigmas : float
+        Tolerance on the chest wall in units of the predicted TRE.
+
+    Returns
+    -------
+    dict
+        ``passed``, ``failures`` (messages), ``fle_mm``, ``fiducial_shift_mm`` per label and,
+        with ``chest_points``, ``chest_wall_shift_mm`` (mean, max) and
+        ``chest_wall_worst_ratio`` (shift / predicted TRE, worst point).
+    """
+    labels = sorted(fixed_points)
+    f = np.asarray([fixed_points[k] for k in labels], float)
+    n = len(f)
+    fre = np.sqrt(np.mean([float(fiducial_only_residuals[k]) ** 2 for k in labels]))
+    fle = max(float(fiducial_error_mm), fre / np.sqrt(max(1.0 - 2.0 / n, 1e-3)))
+    shift = np.linalg.norm(transform_points(refined, f) - transform_points(fiducial_only, f),
+                           axis=1)
+    out: dict = {"fle_mm": float(fle),
+                 "fiducial_shift_mm": {k: float(v) for k, v in zip(labels, shift)}}
+    failures = []
+    if shift.max() > fle:
+        worst = labels[int(shift.argmax())]
+        failures.append(
+            f"the refined registration moves fiducial {worst!r} {shift.max():.2f} mm away "
+            f"from the fiducial-only solution (more than the localisation error {fle:.2f} "
+            "mm): the correlation refinement walked away from the markers")
+    if chest_points is not None and len(chest_points):
+        d = np.linalg.norm(transform_points(refined, chest_points)
+                           - transform_points(fiducial_only, chest_points), axis=1)
+        ratio = d / predicted_tre(chest_points, f, fle)
+        out["chest_wall_shift_mm"] = {"mean": float(d.mean()), "max": float(d.max())}
+        out["chest_wall_worst_ratio"] = float(ratio.max())
+        if ratio.max() > sigmas:
+            failures.append(
+                f"on the chest wall the refined registration differs from the fiducial-only "
+                f"solution by up to {d.max():.2f} mm ({ratio.max():.1f} times the error "
+                f"expected of the fiducials there; limit {sigmas:g})")
+    out["passed"] = not failures
+    out["failures"] = failures
+    return out
 
 
 def add_balls(mask: sitk.Image, centres, radius_mm: float) -> sitk.Image:
@@ -412,11 +587,27 @@ def add_balls(mask: sitk.Image, centres, radius_mm: float) -> sitk.Image:
 
 
 def chest_wall_mask(
-    labels: sitk.Image, *, margin_mm: float = 6.0, breast_margin_mm: float = 2.0
+    labels: sitk.Image, *, margin_mm: float = 6.0, breast_margin_mm: float = 0.0
 ) -> sitk.Image:
-    """Mask (uint8) of the chest wall on a label map: muscle (label 2) dilated by
-    ``margin_mm``, minus breast tissue (1, 3) farther than ``breast_margin_mm`` from the
-    muscle, because the breasts deform between positions and must not drive a rigid fit.
+    """Mask (uint8) of what is rigid on a label map: the chest wall, breasts masked out.
+
+    The muscle (label 2), the band within ``margin_mm`` of it on the side away from the
+    breasts (thorax interior, or the air behind a muscle slab), and only the breast tissue
+    (1, 3) within ``breast_margin_mm`` in front of it. The breasts deform between positions
+    and the space in front of the muscle (air between the breasts, subcutaneous fat) is where
+    they swing, so neither may drive a rigid fit.
+
+    Parameters
+    ----------
+    labels : SimpleITK.Image
+        Reference label map (0 background, 1 breast, 2 muscle, 3 gland).
+    margin_mm, breast_margin_mm : float
+        Widths of the band behind the muscle and of the tissue layer in front of it, mm.
+
+    Returns
+    -------
+    SimpleITK.Image
+        uint8 0/1 on the label map's grid.
     """
     lab = sitk.Cast(labels, sitk.sitkUInt8)
     muscle = lab == 2
@@ -425,7 +616,30 @@ def chest_wall_mask(
                          "chest-wall mask")
     dist = sitk.SignedMaurerDistanceMap(muscle, insideIsPositive=False, squaredDistance=False,
                                         useImageSpacing=True)
-    near = dist <= margin_mm
-    breast = (lab == 1) | (lab == 3)
-    far_breast = breast & (dist > breast_margin_mm)
-    return sitk.Cast(near & (far_breast == 0), sitk.sitkUInt8)
+    a = sitk.GetArrayFromImage(lab)
+    d = sitk.GetArrayFromImage(dist)
+    breast = (a == 1) | (a == 3)
+    band = (d <= margin_mm) & (a != 2)
+    # Band components that reach the breasts hold the space in front of the muscle (a
+    # closed chest wall separates it from the thorax interior). Where the band wraps round
+    # the edge of a muscle slab, the side is the one the distance gradient faces: toward the
+    # breasts (front) or away from them.
+    comp, n = ndimage.label(band)
+    touches = np.zeros(n + 1, bool)
+    touches[np.unique(comp[breast & band])] = True
+    touches[0] = False
+    front = touches[comp]
+    if front.any():
+        spz = np.asarray(lab.GetSpacing(), float)[::-1]
+        cm = np.argwhere(a[::2, ::2, ::2] == 2).mean(axis=0)
+        cb = np.argwhere(breast[::2, ::2, ::2]).mean(axis=0)
+        toward = (cb - cm) * spz  # (z, y, x) mm, muscle -> breasts
+        toward /= max(np.linalg.norm(toward), 1e-9)
+        facing = np.zeros(d.shape, np.float32)
+        for i in range(3):
+            facing += toward[i] * np.gradient(d, spz[i], axis=i).astype(np.float32)
+        front &= facing > -0.5  # not clearly facing away from the breasts
+    keep = (a == 2) | (band & ~front) | (breast & (d <= breast_margin_mm))
+    out = sitk.GetImageFromArray(keep.astype(np.uint8))
+    out.CopyInformation(lab)
+    return out

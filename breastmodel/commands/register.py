@@ -23,9 +23,17 @@ Config (TOML, all optional)::
     sampling = 0.1             # share of mask voxels at full resolution
     learning_rate_mm = 0.5     # first step per unit of shrink factor
     fine_levels = 2            # levels of the masked refinement (the finest)
-    mask_margin_mm = 6.0       # chest-wall mask: muscle dilated by this
+    mask_margin_mm = 6.0       # chest-wall mask: band behind the muscle, mm
     marker_diameter_mm = 4.0
-    seed = 0
+    fiducial_error_mm = 1.0    # smallest fiducial localisation error the checks assume
+    require_fiducials = false  # stop (error) when a position's check fails ("flagged")
+    seed = 20211               # metric sampling seed, >= 1 (0 would mean the wall clock)
+    threads = 1                # metric threads (1: the same transform on every machine)
+
+Each position's entry in ``registration.json`` has ``status``: ``"ok"`` (the refined
+transform agrees with the fiducial-only solution at the markers and on the chest wall),
+``"flagged"`` (it does not; the reasons are in ``warnings``) or ``"unchecked"`` (fewer than
+three consistent fiducials found: a warning, not an error).
 """
 
 from __future__ import annotations
@@ -42,7 +50,8 @@ log = logging.getLogger("breastmodel.register")
 
 REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
                  "sampling", "learning_rate_mm", "fine_levels", "mask_margin_mm",
-                 "marker_diameter_mm", "seed"}
+                 "marker_diameter_mm", "seed", "threads", "fiducial_error_mm",
+                 "require_fiducials"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -119,6 +128,7 @@ def register_subject(
     import SimpleITK as sitk
 
     from breastmodel.config import write_json, write_provenance
+    from breastmodel.errors import StageError
     from imaging.fiducials import find_fiducials
     from imaging.io import write_volume
     from imaging.preprocess import preprocess
@@ -133,7 +143,14 @@ def register_subject(
     )
 
     cfg = read_config(config)
+    require = cfg.get("require_fiducials", False)
+    if not isinstance(require, bool):
+        raise ValueError(f"register: {config} [register] require_fiducials must be true or "
+                         f"false, got {require!r}")
     subject = read_subject(subject_dir)
+    if require and not subject.fiducials:
+        raise StageError("register", "require_fiducials = true but the subject has no "
+                         "fiducials.csv", subject.root)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_provenance(out, {"register": cfg, "subject": str(subject_dir),
@@ -180,7 +197,8 @@ def register_subject(
         raw, img = prepared(name)
         fid = find_fiducials(img, listed=listed.get(name), diameter_mm=diameter)
         opts = {k: cfg[k] for k in ("max_residual_mm", "marker_mask_mm", "iterations",
-                                    "sampling", "learning_rate_mm", "fine_levels", "seed")
+                                    "sampling", "learning_rate_mm", "fine_levels", "seed",
+                                    "threads", "fiducial_error_mm")
                 if k in cfg}
         if "shrink" in cfg:
             opts["shrink"] = tuple(int(v) for v in cfg["shrink"])
@@ -204,6 +222,10 @@ def register_subject(
             "fiducial_residuals_mm": res.fiducial_residuals,
             "fiducials_mm": {k: v.tolist() for k, v in fid.items()},
             "correlation": res.metric,
+            "status": res.status,
+            "checks": res.checks,
+            "fiducial_only_matrix": (None if res.fiducial_transform is None else
+                                     transform_to_matrix(res.fiducial_transform).tolist()),
             "gravity_reference": g.tolist(),
             "warnings": list(res.warnings),
         }
@@ -215,6 +237,11 @@ def register_subject(
             entry["rotation_error_deg"] = rotation_error_deg(res.transform, t)
         report["positions"][name] = entry
         write_json(out / "registration.json", report)
+        if require and res.status == "flagged":
+            why = "; ".join(res.warnings) or res.status
+            raise StageError("register", f"position {name!r}: the registration is "
+                             f"{res.status} ({why}); with require_fiducials = true it must "
+                             "agree with the fiducials", out / "registration.json")
     report["gravity_reference"] = gravity
     write_json(out / "gravity.json", gravity)
     write_json(out / "registration.json", report)
@@ -230,7 +257,8 @@ def run(args: argparse.Namespace) -> int:
         tre = f", TRE mean {e['tre_mm']['mean']:.2f} mm" if "tre_mm" in e else ""
         rot = (f", rotation error {e['rotation_error_deg']:.3f} deg"
                if "rotation_error_deg" in e else "")
-        print(f"{name}: initialised from {e['initialisation']}, {fr}{tre}{rot}")
+        print(f"{name}: {e['status']}, initialised from {e['initialisation']}, "
+              f"{fr}{tre}{rot}")
         for w in e["warnings"]:
             print(f"  warning: {w}")
     print(f"transforms in {args.out}")

@@ -1,8 +1,10 @@
 """``breastmodel segment``: label maps, QA pictures and tissue volumes for every position.
 
 Writes, per position, ``OUT/<position>_labels.nii.gz`` (0 background, 1 breast, 2 muscle,
-3 gland when ``gland = true``) on the input grid and ``OUT/<position>_qa.png``, plus
-``OUT/segmentation.json`` (volumes, levels, Dice with ``--truth``) and provenance. Each file
+3 gland when ``gland = true``) on the input grid and ``OUT/<position>_qa.png`` (with
+orientation letters), plus ``OUT/segmentation.json`` (volumes, levels, the segmentation's
+own confidence: contrast-to-noise, agreement of the threshold start and the active contours,
+volume plausibility; Dice with ``--truth``) and provenance. Each file
 is written atomically and ``segmentation.json`` is merged per position, so a failure in one
 position loses nothing already written.
 
@@ -154,6 +156,7 @@ def segment_position(
         "markers_removed": len(res.markers_mm),
         "seeds": [{"label": s.label, "point_mm": list(s.point)} for s in seeds],
         "notes": list(res.notes),
+        "confidence": res.confidence,
     }
     if truth is not None:
         tpath = Path(truth) / f"{position}_labels.nii.gz"
@@ -230,5 +233,7 @@ def run(args: argparse.Namespace) -> int:
         dice = s.get("dice")
         extra = ("; Dice " + ", ".join(f"{k} {v:.3f}" for k, v in dice.items())) if dice else ""
         print(f"{name}: {vol}{extra}")
+        for w in s.get("confidence", {}).get("warnings", []):
+            print(f"  warning: {w}")
     print(f"labels and QA pictures in {args.out}")
     return 0

@@ -24,7 +24,8 @@ _SEGMENT_KEYS = {"labels", "gland", "skin_level", "levelset_iterations", "curvat
 _PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations", "denoise_method"}
 _REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
                   "sampling", "mask_margin_mm", "marker_diameter_mm", "seed",
-                  "require_fiducials", "learning_rate_mm", "fine_levels"}
+                  "require_fiducials", "learning_rate_mm", "fine_levels", "threads",
+                  "fiducial_error_mm"}
 _SOLVER_KEYS = {"tol", "max_newton", "initial_steps", "min_step", "max_cutbacks",
                 "grow_below", "linear_solver", "line_search", "stagnate_after",
                 "stagnate_above", "singular_shift"}

@@ -130,11 +130,12 @@ def _register(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
         labels.mkdir()
         for pos, folder in seg_dirs.items():
             shutil.copy2(folder / f"{pos}_labels.nii.gz", labels / f"{pos}_labels.nii.gz")
-        reg = {k: v for k, v in cfg["register"].items() if k != "require_fiducials"}
         cfg_path = d / "register.toml"
-        cfg_path.write_text(tomli_w.dumps({"register": reg}))
+        cfg_path.write_text(tomli_w.dumps({"register": dict(cfg["register"])}))
         try:
             register_subject(subject.root, d, seg_dir=labels, config=cfg_path)
+        except StageError:
+            raise
         except (ValueError, RuntimeError) as exc:
             raise StageError("register", str(exc), subject.root) from None
         shutil.rmtree(labels)

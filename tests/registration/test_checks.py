@@ -1,0 +1,201 @@
+"""Registration on what is rigid, checked against the fiducials; bit-for-bit reproducible.
+
+The subject is a muscle slab meeting air with two breasts on it (tests/mri_synth.py); the
+moving position is a rigid motion plus a 25 mm sideways swing of the breasts (a tilted
+position), so a correlation that sees the breasts is pulled away from the chest wall.
+"""
+
+import json
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from mri_synth import Slab, chest_points, euler, render, write_subject
+
+from imaging.preprocess import preprocess
+from registration.qa import rotation_error_deg, target_registration_error
+from registration.rigid import (
+    check_registration,
+    chest_wall_mask,
+    predicted_tre,
+    refine_rigid,
+    register_rigid,
+)
+from registration.transforms import transform_points, write_transform
+
+MOTION = dict(rot_deg=(6.0, -4.0, 8.0), shift_mm=(4.0, -3.0, 5.0))
+
+
+@pytest.fixture(scope="module")
+def tilted():
+    """(fixed, moving, reference labels, truth transform, fixed fiducials, moving fiducials)."""
+    anatomy = Slab()
+    fixed, labels = render(anatomy, seed=1)
+    truth = euler(**MOTION)
+    moving, _ = render(anatomy, motion=truth, swing_mm=25.0, seed=2)
+    fp = anatomy.markers()
+    mp = {k: transform_points(truth, v)[0] for k, v in fp.items()}
+    return (preprocess(fixed, denoise_iterations=0), preprocess(moving, denoise_iterations=0),
+            labels, truth, fp, mp)
+
+
+def test_tilted_position_meets_targets_on_the_chest_wall(tilted):
+    fixed, moving, labels, truth, fp, mp = tilted
+    res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp,
+                         fixed_mask=chest_wall_mask(labels))
+    tre = target_registration_error(res.transform, truth, chest_points(labels))
+    assert rotation_error_deg(truth, sitk.Euler3DTransform()) > 5.0  # a real rotation
+    assert tre.mean() <= 0.5
+    assert rotation_error_deg(res.transform, truth) <= 0.3
+    assert res.status == "ok" and res.checks["passed"]
+    assert max(res.checks["fiducial_shift_mm"].values()) <= res.checks["fle_mm"]
+
+
+def test_chest_wall_mask_leaves_out_the_breasts_and_the_space_they_swing_into(tilted):
+    _, _, labels, *_ = tilted
+    mask = sitk.GetArrayViewFromImage(chest_wall_mask(labels)) > 0
+    lab = sitk.GetArrayViewFromImage(labels)
+    assert mask[lab == 2].all()
+    assert not mask[(lab == 1) | (lab == 3)].any()
+    # y of the voxels (the breasts point to -y): air in front of the muscle is left out,
+    # the air behind the slab is kept.
+    y = labels.GetOrigin()[1] + labels.GetSpacing()[1] * np.arange(lab.shape[1])
+    air = lab == 0
+    front = air & (y[None, :, None] < -1.0)
+    back = air & (y[None, :, None] > Slab().thickness + 1.0)
+    assert not mask[front].any()
+    assert mask[back].any()
+
+
+def test_a_mask_that_sees_the_breasts_is_flagged(tilted):
+    """Degraded on purpose: the whole volume drives the correlation, breasts included."""
+    fixed, moving, labels, truth, fp, mp = tilted
+    res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp, fixed_mask=None)
+    tre = target_registration_error(res.transform, truth, chest_points(labels))
+    assert tre.mean() > 1.0  # the degradation is real ...
+    assert res.status == "flagged"  # ... and reported
+    assert any("walked away" in w for w in res.warnings)
+
+
+def test_a_start_10_mm_off_is_never_reported_good(tilted):
+    """Degraded on purpose: a start 10 mm off along the body axis, fiducials withheld from
+    the initialisation. With the fiducials kept for the check, a result that did not come
+    back is flagged; with no fiducials at all it is unchecked, never ok."""
+    fixed, moving, labels, truth, fp, mp = tilted
+    off = sitk.CompositeTransform([sitk.TranslationTransform(3, (0.0, 0.0, 10.0)), truth])
+    pts = chest_points(labels)
+    mask = chest_wall_mask(labels)
+    res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp, fixed_mask=mask,
+                         initial=off)
+    tre = target_registration_error(res.transform, truth, pts).mean()
+    assert res.initialisation == "given"
+    assert (res.status == "ok") == (tre <= 0.5)
+    assert res.status in ("ok", "flagged")
+
+    blind = register_rigid(fixed, moving, fixed_mask=mask, initial=off)
+    assert blind.status == "unchecked" and not blind.checks
+    assert any("unchecked" in w for w in blind.warnings)
+
+
+def test_check_flags_a_shift_beyond_the_localisation_error():
+    rng = np.random.default_rng(0)
+    fp = {k: rng.normal(0, 50, 3) for k in "abcd"}
+    truth = euler((3.0, 2.0, -5.0), (1.0, 2.0, 3.0))
+    zero = {k: 0.0 for k in fp}
+    chest = rng.normal(0, 40, (200, 3))
+    ok = check_registration(truth, truth, fp, zero, chest_points=chest)
+    assert ok["passed"] and ok["fle_mm"] == 1.0
+    moved = sitk.CompositeTransform([sitk.TranslationTransform(3, (0.0, 0.0, 1.5)), truth])
+    bad = check_registration(moved, truth, fp, zero, chest_points=chest)
+    assert not bad["passed"]
+    assert min(bad["fiducial_shift_mm"].values()) == pytest.approx(1.5)
+    # large fiducial residuals widen the localisation error the check allows
+    loose = check_registration(moved, truth, fp, {k: 2.0 for k in fp}, chest_points=chest)
+    assert loose["fle_mm"] == pytest.approx(2.0 / np.sqrt(0.5))
+    assert loose["passed"]
+
+
+def test_predicted_tre_grows_away_from_the_fiducials():
+    f = np.array([[50.0, 0, 0], [-50, 0, 0], [0, 50, 0], [0, -50, 0]])
+    near, far = predicted_tre(np.array([[0.0, 0, 0], [0, 0, 200]]), f, 1.0)
+    assert near == pytest.approx(0.5)  # FLE / sqrt(N) at the centroid
+    assert far > 4 * near
+
+
+def test_same_input_gives_the_same_transform_bit_for_bit(tilted, tmp_path):
+    fixed, moving, labels, truth, fp, mp = tilted
+    files = []
+    for i in range(2):
+        res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp,
+                             fixed_mask=chest_wall_mask(labels))
+        files.append(tmp_path / f"run{i}.tfm")
+        write_transform(res.transform, files[-1])
+    assert files[0].read_bytes() == files[1].read_bytes()
+
+
+def test_seed_zero_is_refused(tilted):
+    fixed, moving, *_ = tilted
+    with pytest.raises(ValueError, match="wall clock"):
+        refine_rigid(fixed, moving, sitk.Euler3DTransform(), seed=0)
+    with pytest.raises(ValueError, match="seed"):
+        register_rigid(fixed, moving, seed=-3)
+
+
+@pytest.fixture(scope="module")
+def tilted_subject(tmp_path_factory):
+    """Subject folder (supine + tilted, fiducials.csv) and a folder with the supine labels."""
+    root = tmp_path_factory.mktemp("tilted_subject")
+    anatomy = Slab()
+    fixed, labels = render(anatomy, seed=1)
+    truth = euler(**MOTION)
+    moving, _ = render(anatomy, motion=truth, swing_mm=25.0, seed=2)
+    fp = anatomy.markers()
+    mp = {k: transform_points(truth, v)[0] for k, v in fp.items()}
+    g = np.sqrt(0.5)
+    subject = write_subject(root / "subject", {"supine": (fixed, (0, 1, 0)),
+                                               "tilted": (moving, (g, g, 0))},
+                            fiducials={"supine": fp, "tilted": mp})
+    seg = root / "seg"
+    seg.mkdir()
+    sitk.WriteImage(labels, str(seg / "supine_labels.nii.gz"))
+    sitk.WriteImage(labels, str(seg / "tilted_labels.nii.gz"))  # only resampled, not used
+    return subject, seg, truth, labels
+
+
+def test_command_reports_status_and_stops_when_required(tilted_subject, tmp_path):
+    from breastmodel.commands.register import register_subject
+    from breastmodel.errors import StageError
+
+    subject, seg, truth, labels = tilted_subject
+    cfg = tmp_path / "ok.toml"
+    cfg.write_text("[register]\nrequire_fiducials = true\n")
+    rep = register_subject(subject, tmp_path / "ok", seg_dir=seg, config=cfg)
+    entry = rep["positions"]["tilted"]
+    assert entry["status"] == "ok" and entry["checks"]["passed"]
+    got = sitk.ReadTransform(str(tmp_path / "ok" / "tilted.tfm"))
+    assert target_registration_error(got, truth, chest_points(labels)).mean() <= 0.5
+    saved = json.loads((tmp_path / "ok" / "registration.json").read_text())
+    assert saved["positions"]["tilted"]["status"] == "ok"
+
+    again = register_subject(subject, tmp_path / "again", seg_dir=seg, config=cfg)
+    assert again["positions"]["tilted"]["matrix"] == entry["matrix"]
+    # Same input, same transform: the cache means what it says.
+    assert (tmp_path / "again" / "tilted.tfm").read_bytes() == (
+        tmp_path / "ok" / "tilted.tfm").read_bytes()
+
+    # Degraded on purpose: a segmentation that calls the breasts muscle puts them in the
+    # correlation mask; the swing pulls the fit away, the check fails, and the run stops.
+    bad_seg = tmp_path / "bad_seg"
+    bad_seg.mkdir()
+    body = sitk.Cast(labels > 0, sitk.sitkUInt8) * 2
+    for p in ("supine", "tilted"):
+        sitk.WriteImage(body, str(bad_seg / f"{p}_labels.nii.gz"))
+    with pytest.raises(StageError, match="require_fiducials"):
+        register_subject(subject, tmp_path / "strict", seg_dir=bad_seg, config=cfg)
+    saved = json.loads((tmp_path / "strict" / "registration.json").read_text())
+    assert saved["positions"]["tilted"]["status"] == "flagged"
+    assert any("walked away" in w for w in saved["positions"]["tilted"]["warnings"])
+
+    # Without require_fiducials the same result is written with its warning, no error.
+    rep = register_subject(subject, tmp_path / "lax", seg_dir=bad_seg)
+    assert rep["positions"]["tilted"]["status"] == "flagged"
