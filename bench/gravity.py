@@ -75,10 +75,9 @@ def run_ours(n: int, E: float, nu: float, formulation: str, linear_solver: str,
     t0, c0 = time.perf_counter(), time.process_time()
     warm = solve(model, options=opt)
     t_warm, c_warm = time.perf_counter() - t0, time.process_time() - c0
-    keys = ("assembly", "factor", "solve")
-    split = {k: float(sum(e[f"t_{k}"] for e in warm.log)) for k in keys}
-    cpu_split = {k: float(sum(e.get(f"cpu_{k}", float("nan")) for e in warm.log))
-                 for k in keys}
+    keys = ("material", "effects", "assembly", "factor", "solve")
+    split = {k: float(warm.stats[f"t_{k}"]) for k in keys}
+    cpu_split = {k: float(warm.stats[f"cpu_{k}"]) for k in keys}
     return {
         "solver": f"ours ({formulation}, {linear_solver})", "n_tets": mesh.n_tets,
         "n_nodes": mesh.n_nodes, "wall_cold_s": t_cold, "wall_s": t_warm,
@@ -91,6 +90,7 @@ def run_ours(n: int, E: float, nu: float, formulation: str, linear_solver: str,
         "converged": warm.converged, "peak_mb": peak_rss_mb(),
         "agree_cold_warm": float(np.abs(cold.u - warm.u).max()),
         "initial_steps": initial_steps, "cpu_count": os.cpu_count(),
+        "threads": warm.stats["threads"],
         "loadavg_1min_after": os.getloadavg()[0],
     }
 
@@ -238,11 +238,13 @@ def _fmt(r: dict) -> str:
     if "error" in r:
         return f"{r.get('size', ''):>5} {r['solver']:<28} ERROR {r['error']}"
     split = r.get("split_s", {})
-    sp = " / ".join(f"{split.get(k, float('nan')):.2f}" for k in ("assembly", "factor", "solve"))
+    sp = " / ".join(f"{split.get(k, float('nan')):.2f}"
+                    for k in ("material", "assembly", "factor", "solve"))
     cpu = f"cpu {r['cpu_s']:6.2f} s " if "cpu_s" in r else ""
     return (f"{r['size']:>5} {r['solver']:<28} tets {r['n_tets']:>7} wall {r['wall_s']:7.2f} s "
             f"(cold {r['wall_cold_s']:6.2f}) {cpu}newton {r['newton']:>3} "
-            f"asm/fac/sol {sp:>18} peak {r['peak_mb']:7.0f} MB max|u| {r['max_disp_mm']:.4f} mm")
+            f"mat/asm/fac/sol {sp:>22} peak {r['peak_mb']:7.0f} MB "
+            f"max|u| {r['max_disp_mm']:.4f} mm")
 
 
 if __name__ == "__main__":
