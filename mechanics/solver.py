@@ -275,6 +275,9 @@ class _Newton:
                 A = full_from_upper(A)
             if extra is not None:
                 A = (A + extra).tocsr()
+            # The element stiffness (78 doubles per tet) is in A now: the line search keeps
+            # up to three evaluations, and at 150k tets each Kup is 100 MB.
+            ev = replace(ev, Kup=None)
             self._lap("assembly", t0, c0)
         return ev, R, A
 
