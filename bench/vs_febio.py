@@ -53,6 +53,10 @@ CONFIGS: dict[str, dict] = {
     "1 thread": {"threads": 1},
     "no factor reuse": {"reuse_factor": False},
     "initial_steps 2": {"initial_steps": 2},
+    "reuse at any residual": {"reuse_below": 1.0, "reuse_max_iterations": 150},
+    "steps 2 + reuse any": {"initial_steps": 2, "reuse_below": 1.0,
+                            "reuse_max_iterations": 150},
+    "scipy SuperLU": {"linear_solver": "scipy"},
     "tol 1e-6": {"tol": 1e-6},
 }
 REFERENCE_TIP_NH = 12.22  # mm, continuum (reference.json)
@@ -101,6 +105,8 @@ def _ours_worker(size: str, material: str, options: dict) -> dict:
         "max_disp_mm": st.max_displacement(), "converged": st.converged,
         "newton": st.newton_iterations, "load_steps": st.load_steps,
         "stats": st.stats, "peak_before_check_mb": peak,
+        "steps": [{"load": e["load"], "converged": e["converged"], "linear": e["linear"],
+                   "residuals": e["residuals"]} for e in st.log],
         "untimed_wall_s": time.perf_counter() - w0, "untimed_cpu_s": time.process_time() - c0,
         "n_tets": mesh.n_tets, "n_nodes": mesh.n_nodes,
     }
@@ -152,6 +158,7 @@ def run_ours(size: str, material: str, config: str, threads: int) -> dict:
         "peak_mb": res["peak_before_check_mb"], "solve_wall_s": st["wall_s"],
         "factorizations": st["factorizations"], "analyses": st["analyses"],
         "krylov_iterations": st["krylov_iterations"], "unknowns": st["unknowns"],
+        "krylov_failed": st.get("krylov_failed"),
         "phases_cpu_s": {k[4:]: st[k] for k in st if k.startswith("cpu_")
                          and isinstance(st[k], float)},
     })

@@ -40,13 +40,15 @@ class SolverOptions:
     grow_below : grow the increment (x2) after a step that took at most this many iterations
     linear_solver : "auto" (PARDISO if installed, else scipy), "scipy" or "pardiso"
     line_search : Crisfield-type line search on R . du
-    reuse_factor : once the relative residual is below ``reuse_below``, solve with GMRES
-        preconditioned by the last factorisation (an inexact Newton step whose linear
-        tolerance follows the nonlinear residual, so convergence stays quadratic), and
-        refactorise only if GMRES stalls; the GMRES iteration budget is what a new
+    reuse_factor : solve with GMRES preconditioned by the last factorisation (that of an
+        earlier iteration or load step; an inexact Newton step whose linear tolerance
+        follows the nonlinear residual, so convergence stays quadratic), and refactorise
+        only if GMRES does not converge; the GMRES iteration budget is what a new
         factorisation would cost in triangular solves, so reuse never costs much more than
-        it saves (measured at 20k tets: 6 -> 3 factorisations)
-    reuse_below : see ``reuse_factor``
+        it saves (``bench/vs_febio.py``: at 150k tets one factorisation per solve)
+    reuse_below : reuse only once the relative residual is below this (default: always)
+    reuse_max_iterations : most GMRES iterations of one reusing solve (each stores a vector
+        of the system's size), below the budget above
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
         ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
@@ -80,7 +82,8 @@ class SolverOptions:
     linear_solver: str = "auto"
     line_search: bool = True
     reuse_factor: bool = True
-    reuse_below: float = 0.05
+    reuse_below: float = float("inf")
+    reuse_max_iterations: int = 100
     stagnate_after: int = 8
     stagnate_above: float = 1e-3
     singular_shift: float = 1e-2
@@ -247,6 +250,8 @@ class _Newton:
         self.n_factor = 0
         self.krylov_used = 0
         self.krylov_its = 0
+        self.krylov_failed = 0  # reusing solves that did not converge (a factorisation followed)
+        self.trace: list[str] = []  # linear solves of the current step: F, K<its>, k<its> (failed)
 
     def _lap(self, phase: str, t0: float, c0: float) -> tuple[float, float]:
         t1, c1 = time.perf_counter(), time.process_time()
@@ -328,13 +333,17 @@ class _Newton:
         budget = int(0.8 * self.last_factor_s / max(self.last_solve_s, 1e-9))
         if self.opt.reuse_factor and self.factored and rel < self.opt.reuse_below \
                 and budget >= 3 and not fresh:
-            y = self._krylov(matvec, b, rel, min(budget, 40))
+            its0 = self.krylov_its
+            y = self._krylov(matvec, b, rel, min(budget, self.opt.reuse_max_iterations))
             self.krylov_used += y is not None
+            self.krylov_failed += y is None
+            self.trace.append(f"{'K' if y is not None else 'k'}{self.krylov_its - its0}")
         if y is None:
             t0, c0 = time.perf_counter(), time.process_time()
             self.lin.factorize(A, symmetric=self.symmetric)
             self.factored = True
             self.n_factor += 1
+            self.trace.append("F")
             t1, c1 = time.perf_counter(), time.process_time()
             y = self.lin.solve(b)
             self.last_factor_s = c1 - c0  # CPU time: the budget must not follow the load
@@ -355,13 +364,18 @@ class _Newton:
         return du
 
     def _krylov(self, matvec, b, rel, maxit):
-        """GMRES on the new tangent, preconditioned by the previous factorisation."""
+        """GMRES on the new tangent, right-preconditioned by the previous factorisation:
+        GMRES on A M z = b, y = M z. Its residual is the true one, so it stops at the
+        forcing term itself (SciPy preconditions on the left and stops its inner iterations
+        on the preconditioned residual: with one restart cycle that gave up after 3-4
+        iterations at 150k tets when the true residual was still above the forcing term,
+        and a factorisation followed)."""
         import scipy.sparse.linalg as spla
 
         t0, c0 = time.perf_counter(), time.process_time()
         n = len(b)
-        op = spla.LinearOperator((n, n), matvec=matvec, dtype=float)
-        pre = spla.LinearOperator((n, n), matvec=self.lin.precondition, dtype=float)
+        pre = self.lin.precondition
+        op = spla.LinearOperator((n, n), matvec=lambda v: matvec(pre(v)), dtype=float)
         # Forcing term: the linear residual need only be as small as the nonlinear one (keeps
         # Newton's quadratic rate), and never much below what the tolerance asks for.
         eta = min(0.1, max(0.1 * rel, 0.2 * self.opt.tol / max(rel, 1e-300)))
@@ -370,9 +384,10 @@ class _Newton:
         def count(_):
             its[0] += 1
 
-        y, info = spla.gmres(op, b, rtol=eta, atol=0.0, restart=maxit, maxiter=1, M=pre,
+        z, info = spla.gmres(op, b, rtol=eta, atol=0.0, restart=maxit, maxiter=1,
                              callback=count, callback_type="pr_norm")
         self.krylov_its += its[0]
+        y = pre(z) if info == 0 else z
         self._lap("solve", t0, c0)
         if info != 0 or not np.all(np.isfinite(y)):
             return None
@@ -459,6 +474,7 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
         a_before, e_before, fx_before = nw.lin.analyses, nw.n_eval, dict(nw.effect_cpu)
         entry = {"step": step_no, "load": new_lam, "newton": 0, "residuals": [],
                  "converged": False, "cutback": None}
+        nw.trace = entry["linear"] = []
         # Predictor: extrapolate the last two converged states, else scale the guess.
         u_try = u.copy()
         if prev is not None and lam > prev[0]:
@@ -559,6 +575,7 @@ def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
         "evaluations": nw.n_eval, "factorizations": nw.n_factor,
         "analyses": int(getattr(lin, "analyses", 0)),
         "krylov_solves": nw.krylov_used, "krylov_iterations": nw.krylov_its,
+        "krylov_failed": nw.krylov_failed,
         "refinements": int(getattr(lin, "refinements", 0)),
         "rss_start_mb": rss_start, "rss_end_mb": rss_end,
         "peak_rss_mb": max(_peak_rss_mb(), rss_end),

@@ -23,7 +23,9 @@ class State:
         forces and tangents, ``assembly`` the sparse matrix, ``factor`` the factorisations
         with their symbolic analyses, ``solve`` the triangular and Krylov solves),
         ``cpu_by_effect`` (effect name -> CPU s), counts of ``evaluations``,
-        ``factorizations``, ``analyses``, ``krylov_solves``, ``krylov_iterations``
+        ``factorizations``, ``analyses``, ``krylov_solves``, ``krylov_iterations``, and
+        ``linear``: each linear solve in order (``F`` a factorisation, ``K<n>`` a GMRES solve
+        reusing the last factorisation in n iterations, ``k<n>`` one that failed)
     wall_time : s
     pressure : (N,) nodal pressure (kPa, formulation "anp") or (M,) per element
     X : (N, 3) reference positions used, mm
