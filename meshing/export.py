@@ -1,4 +1,5 @@
-"""Writing meshes and surfaces: VTU (ParaView, 3D Slicer), FEBio ``.feb`` 4.0, PLY."""
+"""Writing meshes and surfaces: VTU (ParaView, 3D Slicer), PLY. (FEBio ``.feb`` files come from
+the one writer, :mod:`mechanics.febio`; ``breastmodel.febio.write_mesh_feb`` for a mesh.)"""
 
 from __future__ import annotations
 
@@ -7,14 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mechanics.mesh import REGIONS, Mesh
-
-#: Placeholder neo-Hookean Young's moduli (kPa) for the FEBio file: the paper's optimum
-#: order of magnitude; the user sets the real ones in FEBio.
-FEB_YOUNG_KPA = {"breast_left": 0.3, "breast_right": 0.3, "gland_left": 0.3,
-                 "gland_right": 0.3, "muscle": 10.0}
-FEB_POISSON = 0.49
-FEB_DENSITY = 1e-6  # kg/mm^3 (1000 kg/m^3) in the mm-kg-s system (forces mN, stresses kPa)
+from mechanics.mesh import Mesh
 
 
 def _atomic(path: Path, write) -> Path:
@@ -66,67 +60,3 @@ def write_ply(vertices: np.ndarray, triangles: np.ndarray, path: str | Path) -> 
 
     m = meshio.Mesh(np.asarray(vertices, float), [("triangle", np.asarray(triangles, np.int64))])
     return _atomic(Path(path), lambda p: meshio.write(p, m, file_format="ply"))
-
-
-def _ids(a) -> str:
-    return ",".join(str(int(i) + 1) for i in np.asarray(a).ravel())
-
-
-def feb_text(mesh: Mesh) -> str:
-    """FEBio 4.0 input text: nodes, one tet4 domain per region with a neo-Hookean
-    placeholder material, the face sets as surfaces, node sets, node pairs as discrete sets,
-    and a zero-displacement condition on ``fixed``. Element ids follow the region order."""
-    names = {v: k for k, v in REGIONS.items()}
-    codes = [int(c) for c in np.unique(mesh.region)]
-    out = ['<?xml version="1.0" encoding="ISO-8859-1"?>', '<febio_spec version="4.0">',
-           "\t<!-- breastmodel mesh; units mm, kPa, s, kg (forces mN) -->",
-           '\t<Module type="solid"/>', "\t<Control>", "\t\t<analysis>STATIC</analysis>",
-           "\t\t<time_steps>10</time_steps>", "\t\t<step_size>0.1</step_size>", "\t</Control>",
-           "\t<Material>"]
-    for mid, c in enumerate(codes, start=1):
-        name = names.get(c, f"region_{c}")
-        out += [f'\t\t<material id="{mid}" name="{name}" type="neo-Hookean">',
-                f"\t\t\t<density>{FEB_DENSITY:g}</density>",
-                f"\t\t\t<E>{FEB_YOUNG_KPA.get(name, 1.0):g}</E>",
-                f"\t\t\t<v>{FEB_POISSON:g}</v>", "\t\t</material>"]
-    out += ["\t</Material>", "\t<Mesh>", '\t\t<Nodes name="all">']
-    out += [f'\t\t\t<node id="{i + 1}">{x:.6f},{y:.6f},{z:.6f}</node>'
-            for i, (x, y, z) in enumerate(mesh.nodes)]
-    out.append("\t\t</Nodes>")
-    eid = 1
-    for c in codes:
-        name = names.get(c, f"region_{c}")
-        out.append(f'\t\t<Elements type="tet4" name="{name}">')
-        for t in mesh.tets[mesh.region == c]:
-            out.append(f'\t\t\t<elem id="{eid}">{_ids(t)}</elem>')
-            eid += 1
-        out.append("\t\t</Elements>")
-    for k, f in mesh.face_sets.items():
-        out.append(f'\t\t<Surface name="{k}">')
-        out += [f'\t\t\t<tri3 id="{i + 1}">{_ids(t)}</tri3>' for i, t in enumerate(f)]
-        out.append("\t\t</Surface>")
-    for k, ids in mesh.node_sets.items():
-        out.append(f'\t\t<NodeSet name="{k}">{_ids(ids)}</NodeSet>')
-    for k, pairs in mesh.node_pairs.items():
-        out.append(f'\t\t<DiscreteSet name="{k}">')
-        out += [f"\t\t\t<delem>{_ids(p)}</delem>" for p in pairs]
-        out.append("\t\t</DiscreteSet>")
-    out.append("\t</Mesh>")
-    out.append("\t<MeshDomains>")
-    for c in codes:
-        name = names.get(c, f"region_{c}")
-        out.append(f'\t\t<SolidDomain name="{name}" mat="{name}"/>')
-    out.append("\t</MeshDomains>")
-    if "fixed" in mesh.node_sets and len(mesh.node_sets["fixed"]):
-        out += ["\t<Boundary>",
-                '\t\t<bc name="fixed" node_set="fixed" type="zero displacement">',
-                "\t\t\t<x_dof>1</x_dof>", "\t\t\t<y_dof>1</y_dof>", "\t\t\t<z_dof>1</z_dof>",
-                "\t\t</bc>", "\t</Boundary>"]
-    out.append("</febio_spec>")
-    return "\n".join(out) + "\n"
-
-
-def write_feb(mesh: Mesh, path: str | Path) -> Path:
-    """Write :func:`feb_text` to ``path``."""
-    text = feb_text(mesh)
-    return _atomic(Path(path), lambda p: p.write_text(text, encoding="latin-1"))

@@ -49,8 +49,9 @@ def mesh_file(
     import SimpleITK as sitk
 
     from breastmodel.config import write_json
+    from breastmodel.febio import write_mesh_feb
     from meshing import mesh_labels
-    from meshing.export import write_feb, write_ply, write_vtu
+    from meshing.export import write_ply, write_vtu
     from meshing.quality import report
     from meshing.surface import skin_surface
 
@@ -71,7 +72,7 @@ def mesh_file(
         raise type(exc)(f"mesh [{labels_path}]: {exc}") from exc
     out.mkdir(parents=True, exist_ok=True)
     write_vtu(mesh, out / "mesh.vtu")
-    write_feb(mesh, out / "mesh.feb")
+    write_mesh_feb(mesh, out / "mesh.feb")
     mesh.save_npz(out / "mesh.npz")
     write_ply(skin_v, skin_f, out / "skin.ply")
     q = report(mesh)

@@ -12,6 +12,7 @@ from mechanics.effects.base import (
     Constraint,
     Contribution,
     Effect,
+    MaterialModifier,
     MaterialSpec,
     Param,
     register_effect,
@@ -22,5 +23,6 @@ for _m in pkgutil.iter_modules(__path__):
         importlib.import_module(f"{__name__}.{_m.name}")
 
 __all__ = [
-    "EFFECTS", "Constraint", "Contribution", "Effect", "MaterialSpec", "Param", "register_effect",
+    "EFFECTS", "Constraint", "Contribution", "Effect", "MaterialModifier", "MaterialSpec", "Param",
+    "register_effect",
 ]

@@ -136,6 +136,27 @@ class Effect:
         ``load`` in [0, 1] is the load factor; body loads scale with it, structures do not."""
         return Contribution.zero(len(x))
 
+    def to_febio(self, feb) -> None:
+        """Add this effect to an FEBio file (``feb``: :class:`mechanics.febio.FebBuilder`).
+        The default refuses: an effect says itself how FEBio expresses it."""
+        from mechanics.febio import unsupported
+
+        raise unsupported(f"effect {self.name!r}", "it does not say how (no to_febio hook)")
+
+
+def constraints_to_febio(effect: Effect, feb) -> None:
+    """Write an effect's :meth:`Effect.constraints` as FEBio boundary conditions."""
+    for k, c in enumerate(effect.constraints()):
+        feb.fix(f"{effect.name}_{k + 1}", c.nodes, c.components, c.values)
+
+
+class MaterialModifier(Effect):
+    """An effect that only changes the bulk materials (``modify_materials``): FEBio sees it
+    through ``Model.materials``, so it adds nothing to the file."""
+
+    def to_febio(self, feb) -> None:
+        return None
+
 
 EFFECTS: dict[str, type[Effect]] = {}
 

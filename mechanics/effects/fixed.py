@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects.base import Constraint, Effect, register_effect
+from mechanics.effects.base import Constraint, Effect, constraints_to_febio, register_effect
 
 
 @register_effect
@@ -47,3 +47,5 @@ class Fixed(Effect):
 
     def constraints(self):
         return [Constraint(self.nodes, self.components, self.prescribed)]
+
+    to_febio = constraints_to_febio

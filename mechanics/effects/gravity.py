@@ -60,3 +60,17 @@ class Gravity(Effect):
 
     def contribute(self, X, x, load):
         return Contribution(-load * self.nodal_weight(X))
+
+    def to_febio(self, feb):
+        """FEBio ``body force`` (acceleration g, mm/s^2) on the materials' density (kg/mm^3).
+        FEBio integrates it with each element's own quadrature (UT4, tet10 included)."""
+        from mechanics.febio import KG_M3_TO_KG_MM3, M_TO_MM
+
+        codes = [int(c) for c in np.unique(self.mesh.region)]
+        rho = {c: self.density_by_region.get(c, self.values["density"]) for c in codes}
+        if self.regions is not None:
+            rho = {c: (v if c in set(int(r) for r in self.regions) else 0.0)
+                   for c, v in rho.items()}
+        # FEBio's body force b enters the residual as -rho b: b is minus the acceleration
+        feb.set_body_force(-self.values["g"] * M_TO_MM * self.direction,
+                           {c: v * KG_M3_TO_KG_MM3 for c, v in rho.items()}, owner=self.name)

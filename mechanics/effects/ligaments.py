@@ -134,3 +134,26 @@ class Ligaments(Effect):
         _, fe, Ke = cable_terms(x, self.pairs, self.lengths(X), self.E * self.values["area"],
                                 law=self.law)
         return scatter(len(x), self.pairs, fe, Ke)
+
+    def to_febio(self, feb):
+        """One FEBio discrete set per modulus, ``nonlinear spring`` with the force as a function
+        of the engineering strain (l - L) / L: EA max(strain, 0) (tension-only, exact for the
+        linear law). The neo_hookean law is a sampled curve in the stretch (an
+        approximation, refused unless allowed)."""
+        if len(self.pairs) == 0:
+            return
+        if self.law == "linear":
+            measure, pts = "strain", [(-1.0, 0.0), (0.0, 0.0), (1.0, 1.0)]
+        else:
+            feb.approximate(f"effect {self.name!r}", "the neo_hookean cable law is written "
+                            "as a piecewise-linear curve of the stretch (step 0.01)")
+            lam = np.round(np.arange(0.0, 301.0) * 0.01 + 0.5, 2)
+            measure = "stretch"
+            pts = [(float(s), float(np.where(s > 1.0, (s - s**-2) / 3.0, 0.0))) for s in lam]
+        for E in np.unique(self.E):
+            pairs = self.pairs[self.E == E]
+            curve = ["<interpolate>linear</interpolate>", "<extend>extrapolate</extend>",
+                     "<points>", *[f"\t<pt>{a!r},{b!r}</pt>" for a, b in pts], "</points>"]
+            feb.discrete(f"{self.name}_E{E:g}", pairs, "nonlinear spring",
+                         {"scale": float(E * self.values["area"]), "measure": measure,
+                          'force type="point"': curve})

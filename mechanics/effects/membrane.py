@@ -259,6 +259,29 @@ class MembraneEffect(Effect):
                                           wrinkling=self.wrinkling)
         return scatter(len(x), self.tri, fe, Ke)
 
+    def to_febio(self, feb):
+        """FEBio tri3 shells (``elastic-shell``) of thickness H on the face set, sharing nodes
+        with the solid, with the same law as a nearly incompressible solid (uncoupled
+        Mooney-Rivlin c1 = mu/2 or Gent G = mu, k = E / (3 (1 - 2 nu)), nu = 0.49) and no
+        weight. What differs: a shell also resists bending (about E H^3 / 12 per unit width)
+        and its thickness follows the 3D law instead of exact incompressibility; tension-field
+        wrinkling has no counterpart (an approximation, refused unless allowed)."""
+        if self.wrinkling == "tension_field":
+            feb.approximate(f"effect {self.name!r}", "tension-field wrinkling (no compressive "
+                            "membrane stress) has no FEBio counterpart: the shell carries "
+                            "compression and bends")
+        E, nu = self.values["E"], NU_MEMBRANE
+        mu, k = E / (2.0 * (1.0 + nu)), E / (3.0 * (1.0 - 2.0 * nu))
+        if self.law == "gent":
+            params = {"density": 0.0, "G": mu, "Jm": self.values["Jm"], "k": k,
+                      "pressure_model": "Abaqus"}
+            mat = feb.material(self.name, "Gent", params)
+        else:
+            mat = feb.material(self.name, "Mooney-Rivlin", {
+                "density": 0.0, "c1": 0.5 * mu, "c2": 0.0, "k": k, "pressure_model": "Abaqus"})
+        feb.shell_domain(self.name, self.tri, mat, self.values["thickness"],
+                         owner=f"effect {self.name!r}")
+
 
 #: Locking parameter of the Gent membrane (used only with ``law="gent"``).
 JM_MEMBRANE = Param("Jm", "-", 10.0, 0.05, 1e4, "Gent limit of I1 - 3 (law='gent' only)")

@@ -38,3 +38,8 @@ class PointLoad(Effect):
 
     def contribute(self, X, x, load):
         return Contribution(-load * self.f)
+
+    def to_febio(self, feb):
+        """Dead nodal forces (FEBio ``nodal_force``), ramped with the load."""
+        nodes = np.flatnonzero(np.any(self.f != 0.0, axis=1))
+        feb.nodal_force(self.name, nodes, self.f[nodes])

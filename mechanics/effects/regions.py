@@ -4,12 +4,12 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
-from mechanics.effects.base import Effect, MaterialSpec, Param, register_effect
+from mechanics.effects.base import MaterialModifier, MaterialSpec, Param, register_effect
 from mechanics.mesh import REGIONS
 
 
 @register_effect
-class Regions(Effect):
+class Regions(MaterialModifier):
     """Sets E of each breast region, keeping its law and other parameters.
 
     ``E_left`` applies to ``breast_left``, ``E_right`` to ``breast_right``; glandular

@@ -386,6 +386,31 @@ class Sliding(_InterfaceContact):
         self.anchor_facet, self.anchor_bary = facet, bary
         self.anchor_normal = facet_normals(x, self.master)[facet]
 
+    def to_febio(self, feb):
+        """FEBio ``sliding-elastic`` contact between the breast side (primary, faces flipped so
+        that the normal points out of the breast) and the muscle side: penalty per area
+        without automatic scaling (or augmented Lagrangian), Coulomb ``fric_coeff``; without
+        friction ``tension`` is on (no separation, as ours); FEBio cannot combine it with
+        friction, so with friction its interface may separate. An approximation, refused
+        unless allowed: FEBio's contact points are its own (not our quadrature), its surface
+        ends at the muscle's boundary edges (no extension zone), and its friction sticks with
+        the normal penalty, has a sharp stick-slip corner and follows FEBio's time steps (ours:
+        ``tangential_penalty``, ``smoothing``, ``path_steps``)."""
+        friction = self.values["friction"] > 0
+        why = ("FEBio's sliding-elastic differs in contact points, surface edges"
+               + (", stick stiffness, stick-slip corner and friction path, and it may "
+                  "separate (FEBio cannot combine tension with friction)" if friction else ""))
+        feb.approximate(f"effect {self.name!r}", why)
+        owner = f"effect {self.name!r}"
+        primary = feb.surface(f"{self.name}_breast", self.slave_faces[:, ::-1], owner=owner)
+        secondary = feb.surface(f"{self.name}_muscle", self.master, owner=owner)
+        pair = feb.surface_pair(self.name, primary, secondary)
+        feb.contact("sliding-elastic", pair, {
+            "laugon": "AUGLAG" if self.method == "augmented" else "PENALTY",
+            "penalty": self.values["penalty"], "auto_penalty": "0", "two_pass": "0",
+            "tension": "0" if friction else "1", "symmetric_stiffness": "0" if friction else "1",
+            "fric_coeff": self.values["friction"], "tolerance": 0.1, "search_tol": 0.01})
+
     def path_points(self) -> tuple[float, ...]:
         return tuple(k / self.path_steps for k in range(1, self.path_steps))
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
-from mechanics.effects.base import Effect, MaterialSpec, Param, register_effect
+from mechanics.effects.base import MaterialModifier, MaterialSpec, Param, register_effect
 from mechanics.mesh import REGIONS
 
 
@@ -22,7 +22,7 @@ def region_codes(regions, owner: str) -> list[int]:
 
 
 @register_effect
-class StrainStiffening(Effect):
+class StrainStiffening(MaterialModifier):
     """Gent law W = -mu Jm/2 ln(1 - (I1bar - 3)/Jm) on the chosen regions, keeping E and nu.
 
     Options: ``regions`` names or codes (default: every breast and gland region),

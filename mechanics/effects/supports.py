@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects.base import Constraint, Effect, register_effect
+from mechanics.effects.base import Constraint, Effect, constraints_to_febio, register_effect
 
 
 @register_effect
@@ -63,3 +63,5 @@ class Supports(Effect):
 
     def constraints(self):
         return list(self._constraints)
+
+    to_febio = constraints_to_febio

@@ -61,3 +61,18 @@ class Tied(Effect):
         np.add.at(force, dofs.ravel(), np.einsum("sij,si->sj", B, t).ravel())
         K = k[:, None, None] * (B.transpose(0, 2, 1) @ B)
         return Contribution(force.reshape(-1, 3), *coo_blocks(dofs, dofs, K))
+
+    def to_febio(self, feb):
+        """Split interface: FEBio ``tied-elastic`` contact (penalty per area, kPa/mm, no
+        automatic scaling) between the breast side (primary, faces flipped so that the normal
+        points out of the breast) and the muscle side. Conforming mesh: nothing to add."""
+        if not self.split:
+            return
+        owner = f"effect {self.name!r}"
+        primary = feb.surface(f"{self.name}_breast", self.slave_faces[:, ::-1], owner=owner)
+        secondary = feb.surface(f"{self.name}_muscle", self.master, owner=owner)
+        pair = feb.surface_pair(self.name, primary, secondary)
+        feb.contact("tied-elastic", pair, {"penalty": self.values["penalty"],
+                                           "auto_penalty": "0", "laugon": "PENALTY",
+                                           "symmetric_stiffness": "1", "tolerance": 0.01,
+                                           "search_tol": 0.01})

@@ -70,6 +70,13 @@ class Material:
         """Bulk modulus K = 2/d = E / (3 (1 - 2 nu)), kPa (U(J) = K/2 (J-1)^2)."""
         return self.values["E"] / (3.0 * (1.0 - 2.0 * self.values["nu"]))
 
+    def to_febio(self) -> tuple[str, dict]:
+        """FEBio material type and parameters (kPa) of the same law (density is set by the
+        writer). The default refuses: a law says itself how FEBio expresses it."""
+        from mechanics.febio import unsupported
+
+        raise unsupported(f"material {self.name!r}", "it does not say how (no to_febio hook)")
+
     def deviatoric(self, F: np.ndarray, *, tangent: bool = True):
         """Isochoric energy and its derivatives.
 

@@ -24,3 +24,9 @@ class Gent(IsochoricI1Material):
         s = 1.0 - (I1bar - 3.0) / Jm
         s = np.where(s > 0.0, s, np.nan)  # beyond the limit stretch: undefined
         return -0.5 * mu * Jm * np.log(s), 0.5 * mu / s, 0.5 * mu / (Jm * s * s)
+
+    def to_febio(self):
+        """FEBio's uncoupled Gent, W = -G Jm/2 ln(1 - (I1bar - 3)/Jm), with G = mu and the
+        bulk term k/2 (J - 1)^2 (``pressure_model`` Abaqus), k = K = 2/d: the same energy."""
+        return "Gent", {"G": self.mu, "Jm": self.values["Jm"], "k": self.bulk,
+                        "pressure_model": "Abaqus"}

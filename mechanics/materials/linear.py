@@ -31,3 +31,10 @@ class Linear(Material):
         P = 2.0 * self.mu * dev
         A = np.broadcast_to(2.0 * self.mu * _DEV, (len(F), 3, 3, 3, 3)) if tangent else None
         return W, P, A
+
+    def to_febio(self):
+        from mechanics.febio import unsupported
+
+        raise unsupported("material 'linear'", "it is geometrically linear (small strain); "
+                          "FEBio's 'isotropic elastic' is St Venant-Kirchhoff (large strain) "
+                          "and would solve a different problem")

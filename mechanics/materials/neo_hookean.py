@@ -16,3 +16,9 @@ class NeoHookean(IsochoricI1Material):
     def psi(self, I1bar: np.ndarray):
         half_mu = 0.5 * self.mu
         return half_mu * (I1bar - 3.0), np.full_like(I1bar, half_mu), np.zeros_like(I1bar)
+
+    def to_febio(self):
+        """FEBio's uncoupled Mooney-Rivlin with c1 = mu/2, c2 = 0 and the bulk term
+        k/2 (J - 1)^2 (``pressure_model`` Abaqus), k = K = 2/d: the same energy."""
+        return "Mooney-Rivlin", {"c1": 0.5 * self.mu, "c2": 0.0, "k": self.bulk,
+                                 "pressure_model": "Abaqus"}

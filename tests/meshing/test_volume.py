@@ -7,10 +7,11 @@ import meshio
 import numpy as np
 import pytest
 
+from breastmodel.febio import write_mesh_feb
 from mechanics.mesh import REGIONS
 from meshing import mesh_labels
 from meshing.analytic import touching_boxes_labels
-from meshing.export import write_feb, write_ply, write_vtu
+from meshing.export import write_ply, write_vtu
 from meshing.labels import tissue_masks
 from meshing.quality import report
 from meshing.sets import tet_faces
@@ -157,7 +158,7 @@ def test_exports_round_trip(boxes, tmp_path):
     assert np.array_equal(m.cell_data["region"][0], mesh.region)
     assert m.point_data["fixed"].sum() == len(mesh.node_sets["fixed"])
 
-    root = ET.parse(write_feb(mesh, tmp_path / "m.feb")).getroot()
+    root = ET.parse(write_mesh_feb(mesh, tmp_path / "m.feb")).getroot()
     assert root.tag == "febio_spec" and root.get("version") == "4.0"
     assert len(root.findall("./Mesh/Nodes/node")) == mesh.n_nodes
     elems = root.findall("./Mesh/Elements")
