@@ -166,9 +166,6 @@ def run_ours(size: str, material: str, config: str, threads: int) -> dict:
 
 
 # ------------------------------------------------------------------------------ FEBio
-FEBIO_CONFIGS = ("bfgs", "newton")
-
-
 def febio_recorded(size: str, material: str, config: str, threads: int) -> dict | None:
     """The run of ``summary.json`` (quiet 2-core machine), or None."""
     name = f"hemi_{size}_{'nh' if material == 'nh' else 'gent_Jm5'}_{config}"
@@ -185,13 +182,57 @@ def febio_recorded(size: str, material: str, config: str, threads: int) -> dict 
             "load_before": None, "load_after": None}
 
 
-def febio_live(size: str, material: str, config: str, threads: int) -> dict | None:
-    """A live FEBio run through ``breastmodel.febio`` (None when it is not there)."""
+#: FEBio's solver settings per configuration: BFGS at FEBio's defaults, full Newton tight
+#: (as in ``summary.json``); 10 equal load steps, plain tet4 (its fastest element).
+FEBIO_TOL = {"bfgs": {"dtol": 1e-3, "etol": 1e-2, "rtol": 0.0},
+             "newton": {"dtol": 1e-6, "etol": 1e-8, "rtol": 0.0}}
+
+
+def febio_live(size: str, material: str, config: str, threads: int,
+               element: str = "tet4") -> dict | None:
+    """A live FEBio run of the model our solver gets, written by ``mechanics.febio`` and
+    measured like ours (None when the writer or FEBio is not there)."""
+    import re
+
     try:
-        from breastmodel import febio as fb  # noqa: F401
-    except ImportError:
+        from breastmodel.febio import find_febio
+        from mechanics.febio import DISPLACEMENT_FILE, feb_text, read_node_data
+        from mechanics.model import build_model
+
+        exe = find_febio()
+    except Exception:  # noqa: BLE001  (no writer, no FEBio: fall back to recorded)
         return None
-    return None  # replaced by the runner once the febio branch is merged
+    mesh, tip = load_mesh(size)
+    model = build_model(mesh, {1: MATERIALS[material]},
+                        {"gravity": {"direction": (0, 0, -1), "density": RHO, "g": G},
+                         "fixed": {"node_set": "fixed"}})
+    text = feb_text(model, element=element, steps=10, solver=config, **FEBIO_TOL[config])
+    row = {"code": "febio", "config": config if element == "tet4" else f"{config} {element}",
+           "size": size, "material": material, "threads": threads, "source": "live",
+           "element": element}
+    with tempfile.TemporaryDirectory() as work:
+        Path(work, "model.feb").write_text(text, encoding="latin-1")
+        env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+        env.setdefault("FEBIO_MKL_LIB", os.path.join(sys.prefix, "lib"))
+        m = measure([str(exe), "-i", "model.feb", "-silent"], env, cwd=work)
+        log = Path(work, "model.log")
+        log = log.read_text(errors="replace") if log.exists() else m["stdout"]
+        out = Path(work, DISPLACEMENT_FILE)
+        if not out.exists():
+            return {**row, "error": log[-800:]}
+        u, t_end = read_node_data(out.read_text(), mesh.n_nodes)
+
+    def count(pattern):
+        hit = re.findall(pattern + r"\s*\.*\s*:\s*(\d+)", log)
+        return int(hit[-1]) if hit else None
+
+    row.update(wall_s=m["wall_s"], cpu_s=m["cpu_s"], peak_mb=m["peak_mb"],
+               load_before=m["load_before"], load_after=m["load_after"],
+               newton=count("Total number of equilibrium iterations"),
+               factorizations=count("Total number of stiffness reformations"),
+               tip_mm=float(np.linalg.norm(u[tip])), tip_vec=[float(v) for v in u[tip]],
+               converged="N O R M A L   T E R M I N A T I O N" in log and t_end == 1.0)
+    return row
 
 
 def febio_solver_errors(rows: list[dict]) -> None:
@@ -248,6 +289,8 @@ def main(argv=None) -> int:
                     help="threads of both codes (default: the cores of this process)")
     ap.add_argument("--febio", default="live", choices=("live", "recorded", "none"),
                     help="live runs (falls back to recorded when the runner is missing)")
+    ap.add_argument("--febio-configs", default="bfgs,newton",
+                    help="FEBio configurations: bfgs (its defaults), newton (tight)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "vs_febio.json")
     args = ap.parse_args(argv)
@@ -267,7 +310,7 @@ def main(argv=None) -> int:
         for material in args.materials.split(","):
             here = []
             if args.febio != "none":
-                for cfg in FEBIO_CONFIGS:
+                for cfg in args.febio_configs.split(","):
                     r = febio_live(size, material, cfg, threads) if args.febio == "live" \
                         else None
                     r = r or febio_recorded(size, material, cfg, threads)
