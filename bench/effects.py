@@ -81,8 +81,9 @@ def timed_solve(mesh, effects, options) -> dict:
         "newton_total": st.newton_iterations,
         "cutbacks": sum(1 for e in st.log if not e["converged"]),
         "max_displacement_mm": st.max_displacement(),
-        "t_assembly": sum(e.get("t_assembly", 0.0) for e in st.log),
-        "t_factor": sum(e.get("t_factor", 0.0) for e in st.log),
+        **{k: v for k, v in st.stats.items() if k.startswith(("t_", "cpu_"))},
+        "factorizations": st.stats["factorizations"], "threads": st.stats["threads"],
+        "peak_rss_mb": st.stats["peak_rss_mb"],
     }
 
 

@@ -61,9 +61,9 @@ def main(argv=None) -> int:
         w, c = time.perf_counter() - w0, time.process_time() - c0
         if prof is not None and k == args.repeat - 1:
             prof.disable()
-        parts = ("assembly", "factor", "solve")
-        split = {key: sum(e[f"t_{key}"] for e in st.log) for key in parts}
-        cpu = {key: sum(e.get(f"cpu_{key}", 0.0) for e in st.log) for key in parts}
+        parts = ("material", "effects", "assembly", "factor", "solve")
+        split = {key: st.stats[f"t_{key}"] for key in parts}
+        cpu = {key: st.stats[f"cpu_{key}"] for key in parts}
         fac = sum(e.get("factorizations", 0) for e in st.log)
         kry = sum(e.get("krylov_iterations", 0) for e in st.log)
         print(f"solve {k} ({'cold' if k == 0 else 'warm'}): wall {w:.2f} s cpu {c:.2f} s "
@@ -72,7 +72,7 @@ def main(argv=None) -> int:
               + " ".join(f"{key} {split[key]:.2f}/{cpu[key]:.2f}" for key in parts)
               + f" max|u| {st.max_displacement():.10f} mm res "
               f"{st.log[-1]['residuals'][-1]:.2e} peak {peak_rss_mb():.0f} MB "
-              f"load {os.getloadavg()[0]:.1f}", flush=True)
+              f"threads {st.stats['threads']} load {os.getloadavg()[0]:.1f}", flush=True)
         if args.residuals:
             print("  residuals " + " ".join(f"{r:.1e}" for e in st.log
                                             for r in e["residuals"]))

@@ -1,9 +1,10 @@
 """Pluggable sparse direct solvers with a reused symbolic analysis.
 
-``"scipy"``: SuperLU (always available). ``"pardiso"``: MKL PARDISO (through pypardiso's
-library loader, called directly by ctypes): symmetric indefinite mode on the upper triangle,
-a single-precision factorisation refined to double-precision accuracy, analysis redone only
-when the pattern changes. ``"auto"``: PARDISO when importable, else SuperLU.
+``"scipy"``: SuperLU (always available). ``"pardiso"``: MKL PARDISO (the MKL runtime of the
+environment, e.g. the ``mkl`` wheel that pypardiso installs, called directly by ctypes):
+symmetric indefinite mode on the upper triangle, a single-precision factorisation refined to
+double-precision accuracy, analysis redone only when the pattern or the thread count
+changes. ``"auto"``: PARDISO when MKL is found, else SuperLU.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import ctypes
 import functools
 import os
 import threading
+import time
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,9 +33,14 @@ class SingularSystem(RuntimeError):
 
 
 class ScipySolver:
-    name = "scipy"
+    """SciPy's SuperLU (one thread; ``threads`` is accepted and has no effect)."""
 
-    def __init__(self):
+    name = "scipy"
+    threads = 1
+    analyses = 0
+    analysis_cpu_s = 0.0
+
+    def __init__(self, *, threads: int | None = None):
         self._lu = None
 
     def factorize(self, U: sp.csr_matrix, *, symmetric: bool = True) -> None:
@@ -86,7 +93,9 @@ class _Handle:
         self.ia = self.ja = None
         self.a = None
         self.n = 0
-        self.threads = 0  # MKL threads of the current analysis (0: MKL's default)
+        self.threads = 0  # MKL threads of the current analysis
+        self.analyses = 0  # symbolic analyses (phase 11) made by this handle
+        self.analysis_cpu_s = 0.0  # their CPU time (all threads), s
 
     def call(self, phase: int, b: np.ndarray | None = None) -> np.ndarray | None:
         n = self.n
@@ -112,8 +121,9 @@ class _Handle:
                                  f"({_ERRORS.get(err.value, 'see the MKL manual')})")
         return None if b is None else x
 
-    def factorize(self, A: sp.csr_matrix) -> None:
-        same = (self.ia is not None and self.n == A.shape[0]
+    def factorize(self, A: sp.csr_matrix, threads: int) -> None:
+        """Phase 22, after phase 11 when the pattern or the thread count is new."""
+        same = (self.ia is not None and self.n == A.shape[0] and self.threads == threads
                 and np.array_equal(self.ia, A.indptr) and np.array_equal(self.ja, A.indices))
         self.a = np.ascontiguousarray(A.data, dtype=self.dtype)
         if not same:
@@ -122,13 +132,17 @@ class _Handle:
             self.n = A.shape[0]
             self.ia = A.indptr.astype(np.int32)
             self.ja = A.indices.astype(np.int32)
-            self.threads = _pardiso_threads()
+            self.threads = threads
+            self.analyses += 1
+            t0 = time.process_time()
             try:
                 with _mkl_threads(self.lib, self.threads):
                     self.call(11)
             except SingularSystem:
                 self.ia = self.ja = None
                 raise
+            finally:
+                self.analysis_cpu_s += time.process_time() - t0
         with _mkl_threads(self.lib, self.threads):
             self.call(22)
 
@@ -165,9 +179,9 @@ _ACCURATE = 1e-9
 
 
 class PardisoSolver:
-    """MKL PARDISO. Handles (one per thread, matrix type and precision) are kept, so the
-    symbolic analysis is reused across solves of the same model (e.g. the many solves of a
-    fit).
+    """MKL PARDISO on ``threads`` MKL threads (see :func:`resolve_threads`). Handles (one
+    per Python thread, matrix type and precision) are kept, so the symbolic analysis is
+    reused across solves of the same model and thread count (e.g. the many solves of a fit).
 
     ``precision="single"`` (default): single-precision factor, and :meth:`solve` refines
     its solution with the double-precision matrix to a relative residual of ``refine_tol``
@@ -179,8 +193,11 @@ class PardisoSolver:
 
     name = "pardiso"
 
-    def __init__(self, *, precision: str = "single", refine_tol: float = 1e-14):
-        import pypardiso  # noqa: F401  (fail early if missing)
+    def __init__(self, *, precision: str = "single", refine_tol: float = 1e-14,
+                 threads: int | None = None):
+        _mkl()  # fail early (ImportError or OSError) without MKL
+
+        self.threads = resolve_threads(threads)  # MKL threads of every PARDISO phase
 
         if precision not in ("single", "double"):
             raise ValueError(f"mechanics: PARDISO precision must be 'single' or 'double', "
@@ -193,6 +210,8 @@ class PardisoSolver:
         self.fallbacks = 0  # double-precision refactorisations after a stalled refinement
         self.refinements = 0  # refinement steps (extra triangular solves)
         self.last_refinements = 0  # ... of the last call of solve
+        self.analyses = 0  # symbolic analyses this instance needed (a reused one: none)
+        self.analysis_cpu_s = 0.0  # their CPU time, s
 
     def _handle(self, mtype: int, precision: str) -> _Handle:
         pool = getattr(_POOL, "handles", None)
@@ -221,7 +240,10 @@ class PardisoSolver:
 
     def _factor(self, precision: str) -> None:
         h = self._handle(self._mtype, precision)
-        h.factorize(self._A)
+        n0, c0 = h.analyses, h.analysis_cpu_s
+        h.factorize(self._A, self.threads)
+        self.analyses += h.analyses - n0
+        self.analysis_cpu_s += h.analysis_cpu_s - c0
         self._h = h
 
     def precondition(self, b: np.ndarray) -> np.ndarray:
@@ -261,36 +283,46 @@ class PardisoSolver:
         return x
 
 
-#: Threads of MKL inside PARDISO calls (thread-local, restored after each call):
-#: MECHANICS_PARDISO_THREADS = n > 0 fixes them, 0 leaves MKL's default (one per core), and
-#: "auto" (default) takes one per core left idle by the other processes (1-minute load
-#: average, this solve counted as one), at least one. Measured on the 2-core machine: idle,
-#: 2 threads factorise the 150k-tet tangent in 1.7 s against 3.0 s for one; at a load of
-#: 5.4 the 20k-tet solve took 1.2 s wall with one thread and 1.5 s with two (the second
-#: thread waits for a core; its spinning doubles the CPU time).
-_THREADS_ENV = os.environ.get("MECHANICS_PARDISO_THREADS", "auto").strip().lower()
-PARDISO_THREADS = -1 if _THREADS_ENV == "auto" else int(_THREADS_ENV)
+#: Environment variable that sets the default thread count (see :func:`resolve_threads`).
+THREADS_ENV = "BREASTMODEL_THREADS"
 
 
-def _pardiso_threads() -> int:
-    """Threads for the next PARDISO call (0: MKL's default)."""
-    if PARDISO_THREADS >= 0:
-        return PARDISO_THREADS
-    ncpu = os.cpu_count() or 1
+def machine_cores() -> int:
+    """Cores this process may run on (its CPU affinity), at least 1."""
     try:
-        load = os.getloadavg()[0]
-    except OSError:  # pragma: no cover (no load average on this platform)
-        return 0
-    return int(max(1, min(ncpu, np.floor(ncpu - load + 1.0))))
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # pragma: no cover (no affinity on this platform)
+        return max(1, os.cpu_count() or 1)
+
+
+def resolve_threads(threads: int | None = None) -> int:
+    """The thread count to use: ``threads`` when given (>= 1), else the environment variable
+    ``BREASTMODEL_THREADS``, else :func:`machine_cores`. Never derived from the load: the
+    same command runs on the same number of threads every time."""
+    if threads is None:
+        env = os.environ.get(THREADS_ENV, "").strip()
+        if not env:
+            return machine_cores()
+        try:
+            threads = int(env)
+        except ValueError:
+            raise ValueError(f"mechanics: {THREADS_ENV} must be a positive integer, "
+                             f"got {env!r}") from None
+        where = THREADS_ENV
+    else:
+        where = "threads"
+    if int(threads) != threads or threads < 1:
+        raise ValueError(f"mechanics: {where} must be a positive integer, got {threads!r}")
+    return int(threads)
 
 
 class _mkl_threads:
     """MKL's thread-local thread count set to ``n`` (> 0) inside the block.
 
-    One PARDISO analysis keeps one count for all its phases (``_Handle.threads``): the count
-    follows the load average, and a numerical factorisation with another count than its
-    analysis crashes MKL (reproduced: analysis on 2 threads, phase 22 on 1, a segmentation
-    fault; a CI test run died in phase 22 while the load average moved)."""
+    One PARDISO analysis keeps one count for all its phases (``_Handle.threads``): a
+    numerical factorisation with another count than its analysis crashes MKL (reproduced:
+    analysis on 2 threads, phase 22 on 1, a segmentation fault), so a handle asked for
+    another count analyses again."""
 
     def __init__(self, lib, n: int):
         self.fn = getattr(lib, "MKL_Set_Num_Threads_Local", None)
@@ -309,47 +341,69 @@ class _mkl_threads:
 
 @functools.cache
 def _mkl():
-    """The MKL runtime library as pypardiso found it on import (it globs sys.prefix, about
-    0.7 s, when PYPARDISO_MKL_RT is not set); one search per process."""
+    """The MKL runtime library, one search per process: ``$PYPARDISO_MKL_RT``, else
+    ``libmkl_rt`` in the environment's ``lib/`` (where the pip ``mkl`` wheel puts it), else
+    pypardiso's own search (``find_library`` and a recursive glob of ``sys.prefix``: about
+    0.7 s of a 2 s run at 20k tets)."""
+    import sys
+
+    env = os.environ.get("PYPARDISO_MKL_RT")
+    names = ("libmkl_rt.so.3", "libmkl_rt.so.2", "libmkl_rt.so", "libmkl_rt.dylib")
+    cands = [env] if env else []
+    cands += [os.path.join(sys.prefix, "lib", n) for n in names]
+    for path in cands:
+        if path and os.path.exists(path):
+            try:
+                lib = ctypes.CDLL(path)
+                lib.pardiso  # noqa: B018  (fails if this is not the MKL runtime)
+                return lib
+            except (OSError, AttributeError):
+                continue
     from pypardiso.scipy_aliases import pypardiso_solver  # created (library found) on import
 
     return pypardiso_solver.libmkl
 
 
-def single_thread_blas(fn):
-    """Decorator: run ``fn`` with OpenBLAS (numpy's and scipy's BLAS) on one thread.
+class single_thread_blas:
+    """Context: OpenBLAS (numpy's and scipy's BLAS) on one thread inside the block.
 
     The Newton loop's BLAS calls are vector norms and dots of 10^4-10^5 entries, which
-    threading only slows down on a shared machine (threads wake up on cores that MKL or
-    other processes hold). A no-op without ``threadpoolctl``.
+    threading only slows down (OpenBLAS's threads wake up on the cores that PARDISO's MKL
+    threads use). The parallel work is PARDISO's, on its explicit thread count. A no-op
+    without ``threadpoolctl``.
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover
-        return fn
 
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        with threadpool_limits(limits={"libscipy_openblas": 1, "libopenblas": 1}):
-            return fn(*args, **kwargs)
+    def __enter__(self):
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:  # pragma: no cover
+            self._ctx = None
+            return self
+        self._ctx = threadpool_limits(limits={"libscipy_openblas": 1, "libopenblas": 1})
+        return self
 
-    return wrapper
+    def __exit__(self, *exc):
+        if self._ctx is not None:
+            self._ctx.restore_original_limits()
+        return False
 
 
-def make_linear_solver(name: str):
-    """Return a solver instance for ``name`` in {"auto", "scipy", "pardiso"}."""
+def make_linear_solver(name: str, *, threads: int | None = None):
+    """Return a solver instance for ``name`` in {"auto", "scipy", "pardiso"} on ``threads``
+    threads (see :func:`resolve_threads`)."""
+    threads = resolve_threads(threads)
     if name == "scipy":
-        return ScipySolver()
+        return ScipySolver(threads=threads)
     if name == "pardiso":
         try:
-            return PardisoSolver()
+            return PardisoSolver(threads=threads)
         except ImportError:
             raise ValueError("mechanics: linear_solver='pardiso' needs the pypardiso package "
                              "(pip install pypardiso)") from None
     if name == "auto":
         try:
-            return PardisoSolver()
+            return PardisoSolver(threads=threads)
         except (ImportError, OSError):
-            return ScipySolver()
+            return ScipySolver(threads=threads)
     raise ValueError(f"mechanics: unknown linear solver {name!r}; "
                      "choose 'auto', 'scipy' or 'pardiso'")

@@ -11,6 +11,8 @@ step's initial out-of-balance force).
 from __future__ import annotations
 
 import logging
+import os
+import sys
 import time
 from dataclasses import dataclass, replace
 
@@ -38,13 +40,19 @@ class SolverOptions:
     grow_below : grow the increment (x2) after a step that took at most this many iterations
     linear_solver : "auto" (PARDISO if installed, else scipy), "scipy" or "pardiso"
     line_search : Crisfield-type line search on R . du
-    reuse_factor : once the relative residual is below ``reuse_below``, solve with GMRES
-        preconditioned by the last factorisation (an inexact Newton step whose linear
-        tolerance follows the nonlinear residual, so convergence stays quadratic), and
-        refactorise only if GMRES stalls; the GMRES iteration budget is what a new
+    reuse_factor : solve with GMRES preconditioned by the last factorisation (that of an
+        earlier iteration or load step; an inexact Newton step whose linear tolerance
+        follows the nonlinear residual, so convergence stays quadratic), and refactorise
+        only if GMRES does not converge; the GMRES iteration budget is what a new
         factorisation would cost in triangular solves, so reuse never costs much more than
-        it saves (measured at 20k tets: 6 -> 3 factorisations)
-    reuse_below : see ``reuse_factor``
+        it saves (``bench/vs_febio.py``: at 150k tets one factorisation per solve)
+    reuse_below : reuse only once the relative residual is below this; None (default):
+        always for a symmetric tangent, below 0.05 for an unsymmetric one (frictional
+        sliding, whose tangent changes with the stick/slip state: reused at every residual,
+        the 20k-tet phantom's supine solve took 17-27 iterations with 4-7 factorisations,
+        once cut back, against 18 iterations and 12 factorisations below 0.05)
+    reuse_max_iterations : most GMRES iterations of one reusing solve (each stores a vector
+        of the system's size), below the budget above
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
         ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
@@ -63,6 +71,10 @@ class SolverOptions:
         changes, never the residual, so the converged state is the unregularised
         equilibrium. 0 turns both off (a singular tangent then cuts the step back).
     progress : log every Newton iteration at INFO level
+    threads : MKL threads of the PARDISO phases; None: the environment variable
+        ``BREASTMODEL_THREADS``, else the cores this process may run on (never the load;
+        see :func:`mechanics.linear_solvers.resolve_threads`). The Newton loop's own BLAS
+        calls (vector operations) run on one thread.
     """
 
     tol: float = 1e-8
@@ -74,11 +86,13 @@ class SolverOptions:
     linear_solver: str = "auto"
     line_search: bool = True
     reuse_factor: bool = True
-    reuse_below: float = 0.05
+    reuse_below: float | None = None
+    reuse_max_iterations: int = 100
     stagnate_after: int = 8
     stagnate_above: float = 1e-3
     singular_shift: float = 1e-2
     progress: bool = False
+    threads: int | None = None
 
 
 class SolverError(RuntimeError):
@@ -98,11 +112,16 @@ def _solid(model: Model, X: np.ndarray) -> Solid:
                  formulation=model.formulation)
 
 
-def _effects(model: Model, X, x, load):
+def _effects(model: Model, X, x, load, cpu: dict | None = None):
+    """Sum of the effects' forces and tangent triplets; ``cpu`` (effect name -> s) gathers
+    each effect's CPU time."""
     force = np.zeros(3 * len(X))
     rows, cols, vals = [], [], []
     for eff in model.effects:
+        c0 = time.process_time()
         c = eff.contribute(X, x, load)
+        if cpu is not None:
+            cpu[eff.name] = cpu.get(eff.name, 0.0) + time.process_time() - c0
         force += np.asarray(c.force, float).reshape(-1)
         if len(c.vals):
             rows.append(np.asarray(c.rows))
@@ -216,26 +235,42 @@ class _Newton:
         _check_rigid_modes(X, self.fixed, self.solid.used_nodes, model)
         self.sys = _system(model, self.solid, self.free)
         self.symmetric = all(getattr(e, "symmetric", True) for e in model.effects)
-        self.lin = make_linear_solver(options.linear_solver)
+        self.lin = make_linear_solver(options.linear_solver, threads=options.threads)
         self.anp = model.formulation == "anp"
         if self.anp:
             sel = self.solid.used_nodes
             self.pp_diag = -self.solid.V_node[sel] / self.solid.bulk_node[sel]
         else:
             self.pp_diag = None
-        self.t = {"assembly": 0.0, "factor": 0.0, "solve": 0.0}
-        self.c = {"assembly": 0.0, "factor": 0.0, "solve": 0.0}  # CPU time (all threads)
+        # wall and CPU time (all threads) of: the solid's forces and element stiffness, the
+        # effects' forces and tangents, the sparse assembly (pattern scatter and the effect
+        # entries), the factorisations (symbolic analysis included), the solves
+        self.t = dict.fromkeys(_PHASES, 0.0)
+        self.c = dict.fromkeys(_PHASES, 0.0)
+        self.effect_cpu: dict[str, float] = {}
+        self.n_eval = 0
         self.factored = False
-        self.last_factor_s = self.last_solve_s = 0.0
+        self.last_factor_s = self.last_solve_s = self.krylov_it_s = 0.0
         self.n_factor = 0
         self.krylov_used = 0
         self.krylov_its = 0
+        self.krylov_failed = 0  # reusing solves that did not converge (a factorisation followed)
+        self.trace: list[str] = []  # linear solves of the current step: F, K<its>, k<its> (failed)
+
+    def _lap(self, phase: str, t0: float, c0: float) -> tuple[float, float]:
+        t1, c1 = time.perf_counter(), time.process_time()
+        self.t[phase] += t1 - t0
+        self.c[phase] += c1 - c0
+        return t1, c1
 
     def evaluate(self, u: np.ndarray, load: float, *, tangent: bool):
         t0, c0 = time.perf_counter(), time.process_time()
+        self.n_eval += 1
         x = self.X + u.reshape(-1, 3)
         ev = self.solid.evaluate(x, tangent=tangent)
-        f, r, c, v = _effects(self.model, self.X, x, load)
+        t0, c0 = self._lap("material", t0, c0)
+        f, r, c, v = _effects(self.model, self.X, x, load, self.effect_cpu)
+        t0, c0 = self._lap("effects", t0, c0)
         R = ev.force.reshape(-1) + f
         if not np.all(np.isfinite(R)):
             raise InvalidConfiguration("the residual is not finite")
@@ -249,8 +284,10 @@ class _Newton:
                 A = full_from_upper(A)
             if extra is not None:
                 A = (A + extra).tocsr()
-        self.t["assembly"] += time.perf_counter() - t0
-        self.c["assembly"] += time.process_time() - c0
+            # The element stiffness (78 doubles per tet) is in A now: the line search keeps
+            # up to three evaluations, and at 150k tets each Kup is 100 MB.
+            ev = replace(ev, Kup=None)
+            self._lap("assembly", t0, c0)
         return ev, R, A
 
     def norms(self, R):
@@ -297,16 +334,27 @@ class _Newton:
         b[: self.sys.n_free] = -R[self.free]
         matvec = self._matvec(A)
         y = None
-        budget = int(0.8 * self.last_factor_s / max(self.last_solve_s, 1e-9))
-        if self.opt.reuse_factor and self.factored and rel < self.opt.reuse_below \
+        # CPU seconds of one GMRES iteration: a triangular solve, or what the last GMRES
+        # solve measured (a matvec and the orthogonalisation on top; 2x the triangular
+        # solve with the sliding effect's unsymmetric tangent at 20k tets)
+        per_it = max(self.last_solve_s, self.krylov_it_s, 1e-9)
+        budget = int(0.8 * self.last_factor_s / per_it)
+        below = self.opt.reuse_below
+        if below is None:
+            below = np.inf if self.symmetric else 0.05
+        if self.opt.reuse_factor and self.factored and rel < below \
                 and budget >= 3 and not fresh:
-            y = self._krylov(matvec, b, rel, min(budget, 40))
+            its0 = self.krylov_its
+            y = self._krylov(matvec, b, rel, min(budget, self.opt.reuse_max_iterations))
             self.krylov_used += y is not None
+            self.krylov_failed += y is None
+            self.trace.append(f"{'K' if y is not None else 'k'}{self.krylov_its - its0}")
         if y is None:
             t0, c0 = time.perf_counter(), time.process_time()
             self.lin.factorize(A, symmetric=self.symmetric)
             self.factored = True
             self.n_factor += 1
+            self.trace.append("F")
             t1, c1 = time.perf_counter(), time.process_time()
             y = self.lin.solve(b)
             self.last_factor_s = c1 - c0  # CPU time: the budget must not follow the load
@@ -327,13 +375,18 @@ class _Newton:
         return du
 
     def _krylov(self, matvec, b, rel, maxit):
-        """GMRES on the new tangent, preconditioned by the previous factorisation."""
+        """GMRES on the new tangent, right-preconditioned by the previous factorisation:
+        GMRES on A M z = b, y = M z. Its residual is the true one, so it stops at the
+        forcing term itself (SciPy preconditions on the left and stops its inner iterations
+        on the preconditioned residual: with one restart cycle that gave up after 3-4
+        iterations at 150k tets when the true residual was still above the forcing term,
+        and a factorisation followed)."""
         import scipy.sparse.linalg as spla
 
         t0, c0 = time.perf_counter(), time.process_time()
         n = len(b)
-        op = spla.LinearOperator((n, n), matvec=matvec, dtype=float)
-        pre = spla.LinearOperator((n, n), matvec=self.lin.precondition, dtype=float)
+        pre = self.lin.precondition
+        op = spla.LinearOperator((n, n), matvec=lambda v: matvec(pre(v)), dtype=float)
         # Forcing term: the linear residual need only be as small as the nonlinear one (keeps
         # Newton's quadratic rate), and never much below what the tolerance asks for.
         eta = min(0.1, max(0.1 * rel, 0.2 * self.opt.tol / max(rel, 1e-300)))
@@ -342,18 +395,20 @@ class _Newton:
         def count(_):
             its[0] += 1
 
-        y, info = spla.gmres(op, b, rtol=eta, atol=0.0, restart=maxit, maxiter=1, M=pre,
+        z, info = spla.gmres(op, b, rtol=eta, atol=0.0, restart=maxit, maxiter=1,
                              callback=count, callback_type="pr_norm")
         self.krylov_its += its[0]
-        self.t["solve"] += time.perf_counter() - t0
-        self.c["solve"] += time.process_time() - c0
+        y = pre(z) if info == 0 else z
+        c1 = time.process_time()
+        if its[0]:
+            self.krylov_it_s = (c1 - c0) / its[0]
+        self._lap("solve", t0, c0)
         if info != 0 or not np.all(np.isfinite(y)):
             return None
         err = np.linalg.norm(matvec(y) - b) / max(np.linalg.norm(b), 1e-300)
         return y if err <= max(eta, 1e-12) * 1.01 else None
 
 
-@single_thread_blas
 def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = None,
           options: SolverOptions = SolverOptions()) -> State:
     """Static equilibrium of ``model`` under its effects at full load.
@@ -375,7 +430,13 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
     SolverError : unconstrained model, or divergence after the last cut-back; ``.state``
         holds the last converged state
     """
+    with single_thread_blas():
+        return _solve(model, X, u0, options)
+
+
+def _solve(model: Model, X, u0, options: SolverOptions) -> State:
     t_start = time.perf_counter()
+    rss_start = _rss_mb()
     X = np.array(model.mesh.nodes if X is None else X, dtype=np.float64)
     if X.shape != model.mesh.nodes.shape:
         raise ValueError(f"mechanics: X must be {model.mesh.nodes.shape}, got {X.shape}")
@@ -405,7 +466,8 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
         uu = u.reshape(-1, 3).copy()
         p = ev.p_node if nw.anp else ev.p_elem
         return State(uu, converged, float(lam), stress, J, tuple(steps),
-                     time.perf_counter() - t_start, p.copy(), X.copy())
+                     time.perf_counter() - t_start, p.copy(), X.copy(),
+                     _stats(nw, rss_start, time.perf_counter() - t_start))
 
     # Path points: loads where a path-dependent effect (friction) updates its history; a
     # step never crosses one, so the solution does not depend on how the steps fell.
@@ -423,8 +485,10 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
             eff.begin_step(X, x_conv, lam)
         t_before, c_before = dict(nw.t), dict(nw.c)
         f_before, k_before, i_before = nw.n_factor, nw.krylov_used, nw.krylov_its
+        a_before, e_before, fx_before = nw.lin.analyses, nw.n_eval, dict(nw.effect_cpu)
         entry = {"step": step_no, "load": new_lam, "newton": 0, "residuals": [],
                  "converged": False, "cutback": None}
+        nw.trace = entry["linear"] = []
         # Predictor: extrapolate the last two converged states, else scale the guess.
         u_try = u.copy()
         if prev is not None and lam > prev[0]:
@@ -450,6 +514,10 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
             entry[f"t_{k}"] = nw.t[k] - t_before[k]
             entry[f"cpu_{k}"] = nw.c[k] - c_before[k]
         entry["factorizations"] = nw.n_factor - f_before
+        entry["analyses"] = nw.lin.analyses - a_before
+        entry["evaluations"] = nw.n_eval - e_before
+        entry["cpu_by_effect"] = {k: v - fx_before.get(k, 0.0)
+                                  for k, v in nw.effect_cpu.items()}
         entry["krylov_solves"] = nw.krylov_used - k_before
         entry["krylov_iterations"] = nw.krylov_its - i_before
         entry["converged"] = ok
@@ -478,7 +546,54 @@ def solve(model: Model, *, X: np.ndarray | None = None, u0: np.ndarray | None = 
                 f"{_mesh_hint(model.mesh) if lam == 0.0 else ''}",
                 st,
             )
-    return replace(state(True, last_ev), wall_time=time.perf_counter() - t_start)
+    st = state(True, last_ev)
+    wall = time.perf_counter() - t_start
+    return replace(st, wall_time=wall, stats={**st.stats, "wall_s": wall})
+
+
+#: Cost phases of a solve (wall and CPU time in each step's log and in ``State.stats``).
+_PHASES = ("material", "effects", "assembly", "factor", "solve")
+
+
+def _rss_mb() -> float:
+    """Resident memory of this process now (MB), NaN where /proc is not available."""
+    try:
+        with open("/proc/self/statm") as fh:
+            return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except (OSError, ValueError, IndexError):  # pragma: no cover
+        return float("nan")
+
+
+def _peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB): ``ru_maxrss``."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover (not on Windows)
+        return float("nan")
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kb / 1024.0 if sys.platform != "darwin" else kb / 2**20
+
+
+def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
+    """Totals of one solve: time per phase, counts, threads, memory."""
+    lin = nw.lin
+    rss_end = _rss_mb()
+    return {
+        "wall_s": wall,
+        **{f"t_{k}": nw.t[k] for k in _PHASES},
+        **{f"cpu_{k}": nw.c[k] for k in _PHASES},
+        "cpu_by_effect": dict(nw.effect_cpu),
+        "cpu_analysis": float(getattr(lin, "analysis_cpu_s", 0.0)),
+        "linear_solver": lin.name, "threads": int(lin.threads),
+        "unknowns": int(nw.sys.n), "matrix_nnz_upper": int(nw.sys.nnz),
+        "evaluations": nw.n_eval, "factorizations": nw.n_factor,
+        "analyses": int(getattr(lin, "analyses", 0)),
+        "krylov_solves": nw.krylov_used, "krylov_iterations": nw.krylov_its,
+        "krylov_failed": nw.krylov_failed,
+        "refinements": int(getattr(lin, "refinements", 0)),
+        "rss_start_mb": rss_start, "rss_end_mb": rss_end,
+        "peak_rss_mb": max(_peak_rss_mb(), rss_end),
+    }
 
 
 def _mesh_hint(mesh) -> str:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -18,10 +18,21 @@ class State:
     J : (M,) volume ratio per element
     log : per load step a dict with ``load``, ``step``, ``newton`` (iterations),
         ``residuals`` (relative norms), ``converged``, ``cutback`` reason or None,
-        ``t_assembly``, ``t_factor``, ``t_solve`` (s)
+        wall and CPU time of each cost phase (``t_<phase>``, ``cpu_<phase>``, s; phases:
+        ``material`` the solid's forces and element stiffness, ``effects`` the effects'
+        forces and tangents, ``assembly`` the sparse matrix, ``factor`` the factorisations
+        with their symbolic analyses, ``solve`` the triangular and Krylov solves),
+        ``cpu_by_effect`` (effect name -> CPU s), counts of ``evaluations``,
+        ``factorizations``, ``analyses``, ``krylov_solves``, ``krylov_iterations``, and
+        ``linear``: each linear solve in order (``F`` a factorisation, ``K<n>`` a GMRES solve
+        reusing the last factorisation in n iterations, ``k<n>`` one that failed)
     wall_time : s
     pressure : (N,) nodal pressure (kPa, formulation "anp") or (M,) per element
     X : (N, 3) reference positions used, mm
+    stats : totals of the solve: the phases' times as in ``log``, the counts, ``threads``
+        and ``linear_solver`` used, ``unknowns``, ``matrix_nnz_upper``, memory of the
+        process (``rss_start_mb``, ``rss_end_mb``, ``peak_rss_mb``: its high-water mark,
+        which includes what ran before the solve in the same process), MB
     """
 
     u: np.ndarray
@@ -33,6 +44,7 @@ class State:
     wall_time: float = 0.0
     pressure: np.ndarray | None = None
     X: np.ndarray | None = None
+    stats: dict = field(default_factory=dict)
 
     @property
     def x(self) -> np.ndarray:

@@ -32,10 +32,15 @@ node set. The config (TOML)::
     max_cutbacks = 20
     linear_solver = "auto"     # "auto" | "scipy" | "pardiso"
     formulation = "anp"        # "anp" (locking-free) | "standard"
+    threads = 4                # PARDISO's threads; default: env BREASTMODEL_THREADS, else
+                               # the cores this process may run on
+    # and any other field of mechanics.solver.SolverOptions
 
 DIR receives ``result.vtu`` (point data ``displacement`` in mm, cell data stress, J,
 stretch), ``solve.json`` (converged, load reached, load steps, Newton iterations, wall time,
-maximum displacement, per-step log) and the resolved config with package versions.
+maximum displacement, ``stats``: threads, time per phase, counts of factorisations and
+analyses, peak memory; ``log``: the same per load step, with each effect's CPU time) and the
+resolved config with package versions.
 """
 
 from __future__ import annotations
@@ -49,9 +54,15 @@ from typing import Any
 log = logging.getLogger("breastmodel.simulate")
 
 _TOP_KEYS = ("materials", "supports", "gravity", "point_loads", "effects", "solver")
-_SOLVER_KEYS = ("tol", "max_newton", "initial_steps", "min_step", "max_cutbacks",
-                "linear_solver", "formulation", "grow_below", "line_search", "stagnate_after",
-                "stagnate_above", "singular_shift")
+
+
+def solver_keys() -> tuple[str, ...]:
+    """Keys of the ``[solver]`` table: the fields of ``SolverOptions`` and ``formulation``."""
+    from dataclasses import fields
+
+    from mechanics.solver import SolverOptions
+
+    return (*(f.name for f in fields(SolverOptions)), "formulation")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -79,7 +90,30 @@ def run(args: argparse.Namespace) -> int:
           f"max displacement {summary['max_displacement_mm']:.3f} mm, "
           f"{summary['newton_iterations']} Newton iterations in {summary['load_steps']} load "
           f"step(s), {summary['wall_time_s']:.2f} s -> {args.out}")
+    print(cost_table(summary))
     return 0
+
+
+def cost_table(summary: dict[str, Any]) -> str:
+    """Text table of a solve's costs per load step (wall / CPU seconds per phase, counts) and
+    its threads and peak memory, from a ``solve.json`` summary."""
+    phases = ("material", "effects", "assembly", "factor", "solve")
+    head = (f"{'step':>4} {'load':>6} {'newton':>6} {'fact':>4} {'anal':>4} "
+            + " ".join(f"{p:>13}" for p in phases) + "  (wall/cpu s)")
+    rows = [head]
+    for e in summary.get("log", []):
+        cells = " ".join(f"{e.get(f't_{p}', 0.0):6.2f}/{e.get(f'cpu_{p}', 0.0):6.2f}"
+                         for p in phases)
+        rows.append(f"{e['step']:>4} {e['load']:6.3f} {e['newton']:>6} "
+                    f"{e.get('factorizations', 0):>4} {e.get('analyses', 0):>4} {cells}"
+                    + ("" if e.get("converged") else "  cut back"))
+    st = summary.get("stats", {})
+    if st:
+        by_eff = ", ".join(f"{k} {v:.2f}" for k, v in st.get("cpu_by_effect", {}).items())
+        rows.append(f"{st.get('linear_solver')} on {st.get('threads')} thread(s), "
+                    f"{st.get('unknowns')} unknowns; peak memory {st.get('peak_rss_mb', 0):.0f} "
+                    f"MB; effects CPU s: {by_eff or 'none'}")
+    return "\n".join(rows)
 
 
 def model_inputs(config: dict[str, Any], *, where: str = "simulate config"):
@@ -115,7 +149,7 @@ def model_inputs(config: dict[str, Any], *, where: str = "simulate config"):
     for name, kw in config.get("effects", {}).items():
         effects[name] = dict(kw)
     solver_cfg = dict(config.get("solver", {}))
-    check_keys(solver_cfg, _SOLVER_KEYS, where=f"{where} [solver]")
+    check_keys(solver_cfg, solver_keys(), where=f"{where} [solver]")
     formulation = solver_cfg.pop("formulation", "anp")
     return materials, effects, SolverOptions(**solver_cfg), formulation
 
@@ -153,6 +187,7 @@ def simulate_file(mesh_path: Path, config: dict[str, Any], out: Path, *,
         "wall_time_s": time.perf_counter() - t0,
         "max_displacement_mm": state.max_displacement() if state is not None else 0.0,
         "error": None if error is None else str(error),
+        "stats": dict(state.stats) if state is not None else {},
         "log": [dict(e) for e in state.log] if state is not None else [],
     }
     if state is not None:

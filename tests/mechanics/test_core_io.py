@@ -62,6 +62,17 @@ def test_simulate_command(tmp_path):
     assert u.shape == (mesh.n_nodes, 3)
     assert abs(np.linalg.norm(u, axis=1).max() - summary["max_displacement_mm"]) < 1e-9
     assert u[:, 2].min() < -1.0
+    st = summary["stats"]
+    assert st["linear_solver"] == "scipy" and st["peak_rss_mb"] > 0 and st["factorizations"]
+    assert all("t_factor" in e and "cpu_by_effect" in e for e in summary["log"])
+    # [solver] threads reaches the solver (PARDISO's thread count), reported in solve.json.
+    pytest.importorskip("pypardiso")
+    (tmp_path / "t.toml").write_text((tmp_path / "sim.toml").read_text().replace(
+        '"scipy"', '"pardiso"\nthreads = 1'))
+    assert main(["simulate", str(tmp_path / "mesh.vtu"), "--config", str(tmp_path / "t.toml"),
+                 "--out", str(out)]) == 0
+    st = json.loads((out / "solve.json").read_text())["stats"]
+    assert st["linear_solver"] == "pardiso" and st["threads"] == 1
     # A typo in the config is one clear error, exit code 1.
     (tmp_path / "typo.toml").write_text('[materials.1]\nname = "neo_hookean"\n[gravty]\n')
     assert main(["simulate", str(tmp_path / "mesh.vtu"), "--config",

@@ -85,11 +85,11 @@ def test_pardiso_falls_back_to_double_precision_when_refinement_stalls():
     assert lin.fallbacks == 1 and lin.precision == "double"
 
 
-def test_pardiso_keeps_the_thread_count_of_its_analysis(tmp_path):
-    """The count of MKL threads follows the load average. A factorisation that reuses an
-    analysis must keep the analysis's count: MKL crashes otherwise (phase 22 on 1 thread
-    after an analysis on 2: a segmentation fault). Run in a child process, which the count
-    changing between calls would kill."""
+def test_pardiso_analyses_again_for_another_thread_count(tmp_path):
+    """A factorisation that reuses an analysis must run on the analysis's thread count (MKL
+    crashes otherwise: phase 22 on 1 thread after an analysis on 2, a segmentation fault).
+    Solvers of different counts share one handle per pattern, so a new count analyses
+    again. Run in a child process, which a crash would kill."""
     import subprocess
     import sys
     from pathlib import Path
@@ -105,23 +105,42 @@ import mechanics.linear_solvers as L
 from test_core_linear_solvers import _saddle
 
 U = _saddle(10)[0]
-mode = [2]
-L._pardiso_threads = lambda: mode[0]  # what the load average would give now
-s = L.PardisoSolver()
 b = np.ones(U.shape[0])
-for i in range(10):
-    s._handle(-2, "single").ia = None  # a new analysis, then a factorisation reusing it
-    mode[0] = 2
-    s.factorize(U)
-    mode[0] = 1  # the load rose
-    s.factorize(U * (1.0 + 0.01 * i))
-    x = s.solve(b)
-    assert s._h.threads == 2
-    r = L.full_from_upper(U * (1.0 + 0.01 * i)) @ x - b
-    assert np.linalg.norm(r) <= 1e-8 * np.linalg.norm(b)
+for i in range(6):
+    for n in (2, 1):
+        s = L.PardisoSolver(threads=n)
+        Ui = U * (1.0 + 0.01 * i)
+        s.factorize(Ui)
+        s.factorize(Ui)  # the same pattern and count: no new analysis
+        x = s.solve(b)
+        assert s._h.threads == n and s.analyses == 1, (s._h.threads, s.analyses)
+        r = L.full_from_upper(Ui) @ x - b
+        assert np.linalg.norm(r) <= 1e-8 * np.linalg.norm(b)
 print("ok")
 """)
     done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, (done.returncode, done.stderr[-2000:])
     assert done.stdout.strip().endswith("ok")
+
+
+def test_thread_count_comes_from_the_setting_the_environment_or_the_cores(monkeypatch):
+    """Explicit count first, then BREASTMODEL_THREADS, then the cores of the process; never
+    the load average."""
+    import os
+
+    from mechanics.linear_solvers import THREADS_ENV, machine_cores, resolve_threads
+
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    assert resolve_threads(None) == machine_cores() == len(os.sched_getaffinity(0))
+    monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0))
+    assert resolve_threads(None) == machine_cores()
+    monkeypatch.setenv(THREADS_ENV, "3")
+    assert resolve_threads(None) == 3
+    assert resolve_threads(1) == 1
+    for bad in ("0", "two", "-1"):
+        monkeypatch.setenv(THREADS_ENV, bad)
+        with pytest.raises(ValueError, match=THREADS_ENV):
+            resolve_threads(None)
+    with pytest.raises(ValueError, match="threads"):
+        resolve_threads(0)

@@ -171,3 +171,51 @@ def test_a_tet_hanging_by_an_edge_is_named_when_the_first_step_fails():
     with pytest.raises(SolverError, match=rf"1 tet\(s\) that meet the rest only at an edge "
                                           rf"or a vertex \(tets {len(tets) - 1}\)"):
         solve(model, options=SolverOptions(linear_solver="scipy", max_cutbacks=3))
+
+
+@pytest.mark.parametrize("threads", [1, 3])
+def test_thread_setting_reaches_every_pardiso_call(monkeypatch, threads):
+    """``SolverOptions.threads`` (and, unset, BREASTMODEL_THREADS) is the MKL thread count in
+    force during every PARDISO phase (asked of MKL itself inside the call); OpenBLAS runs on
+    one thread inside the solve and gets its own count back afterwards; the solve reports
+    the count and its phases' costs."""
+    pytest.importorskip("pypardiso")
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import mechanics.linear_solvers as L
+    import mechanics.solver as S
+
+    seen, blas = [], []
+    call = L._Handle.call
+
+    def spy(self, phase, b=None):
+        seen.append((phase, int(self.lib.MKL_Get_Max_Threads())))
+        return call(self, phase, b)
+
+    def spy_eval(self, *a, **k):
+        blas.extend(p["num_threads"] for p in threadpoolctl.threadpool_info()
+                    if p["internal_api"] == "openblas")
+        return evaluate(self, *a, **k)
+
+    evaluate = S._Newton.evaluate
+    monkeypatch.setattr(L._Handle, "call", spy)
+    monkeypatch.setattr(S._Newton, "evaluate", spy_eval)
+    mesh = hemisphere(60.0, 6)
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 0, -1)},
+                                   "fixed": {"node_set": "fixed"}})
+    before = [p["num_threads"] for p in threadpoolctl.threadpool_info()
+              if p["internal_api"] == "openblas"]
+    monkeypatch.setenv("BREASTMODEL_THREADS", "2")
+    st = solve(model, options=SolverOptions(linear_solver="pardiso", threads=threads))
+    assert st.converged and st.stats["threads"] == threads
+    phases = {p for p, _ in seen}
+    assert {11, 22, 33} <= phases and {n for p, n in seen if p > 0} == {threads}
+    assert blas and set(blas) == {1}
+    assert [p["num_threads"] for p in threadpoolctl.threadpool_info()
+            if p["internal_api"] == "openblas"] == before
+    seen.clear()
+    st = solve(model, options=SolverOptions(linear_solver="pardiso"))  # from the environment
+    assert st.stats["threads"] == 2 and {n for p, n in seen if p > 0} == {2}
+    for k in ("material", "effects", "assembly", "factor", "solve"):
+        assert st.stats[f"cpu_{k}"] >= 0.0 and all(f"t_{k}" in e for e in st.log)
+    assert st.stats["factorizations"] >= 1 and st.stats["peak_rss_mb"] > 0
+    assert set(st.stats["cpu_by_effect"]) == {"gravity", "fixed"}
