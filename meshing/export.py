@@ -1,5 +1,8 @@
-"""Writing meshes and surfaces: VTU (ParaView, 3D Slicer), VTP, PLY. (FEBio ``.feb`` files come from
-the one writer, :mod:`mechanics.febio`; ``breastmodel.febio.write_mesh_feb`` for a mesh.)"""
+"""Reading and writing meshes and surfaces: VTU (ParaView, 3D Slicer), VTP, PLY.
+
+FEBio ``.feb`` files come from the one writer, :mod:`mechanics.febio`
+(``breastmodel.febio.write_mesh_feb`` for a mesh).
+"""
 
 from __future__ import annotations
 
@@ -12,9 +15,17 @@ from mechanics.mesh import Mesh
 
 
 def _atomic(path: Path, write) -> Path:
+    """Run ``write(tmp)`` on a uniquely named temporary file in the target folder, then
+    rename it to ``path`` (readers never see a partial file; two writers never share a
+    temporary name); the temporary file is removed on failure."""
+    import tempfile
+
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
+                                dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
     try:
         write(tmp)
         os.replace(tmp, path)
@@ -40,18 +51,82 @@ def point_data(mesh: Mesh) -> dict[str, np.ndarray]:
     return out
 
 
-def write_vtu(mesh: Mesh, path: str | Path) -> Path:
-    """VTK unstructured grid: tets with cell data ``region`` and point data for every named
-    node set and node pair (see :func:`point_data`). Face sets appear through their nodes."""
+def write_vtu(path: str | Path, mesh: Mesh, *, points: np.ndarray | None = None,
+              fields: dict[str, np.ndarray] | None = None,
+              cell_fields: dict[str, np.ndarray] | None = None) -> Path:
+    """VTK unstructured grid of a tet mesh: the one VTU writer.
+
+    Parameters
+    ----------
+    path : output file (.vtu)
+    mesh : the mesh; cell data ``region`` and point data for every named node set and node
+        pair (see :func:`point_data`) are always written. Face sets appear through their
+        nodes.
+    points : (N, 3) positions to write, mm (default the mesh nodes; e.g. deformed positions)
+    fields : further point data, name -> (N,) or (N, k) array
+    cell_fields : further cell data, name -> (M,) or (M, k) array
+    """
     import meshio
 
-    m = meshio.Mesh(
-        points=np.asarray(mesh.nodes),
-        cells=[("tetra", np.asarray(mesh.tets))],
-        cell_data={"region": [np.asarray(mesh.region, np.int32)]},
-        point_data=point_data(mesh),
-    )
+    pd = point_data(mesh)
+    pd.update({k: np.asarray(v) for k, v in (fields or {}).items()})
+    cd = {"region": [np.asarray(mesh.region, np.int32)]}
+    cd.update({k: [np.asarray(v)] for k, v in (cell_fields or {}).items()})
+    pts = np.asarray(mesh.nodes if points is None else points, float)
+    if pts.shape != (mesh.n_nodes, 3):
+        raise ValueError(f"write_vtu: points must be ({mesh.n_nodes}, 3), got {pts.shape}")
+    m = meshio.Mesh(points=pts, cells=[("tetra", np.asarray(mesh.tets))], cell_data=cd,
+                    point_data=pd)
     return _atomic(Path(path), lambda p: meshio.write(p, m, file_format="vtu"))
+
+
+def read_vtu(path: str | Path) -> Mesh:
+    """Read a tet mesh: cell data ``region`` (int; all 1 if absent) and every 1-D point-data
+    array whose values are all 0 or 1 as a node set of the same name.
+
+    Raises
+    ------
+    OSError
+        The file does not exist.
+    ValueError
+        The file is not a readable mesh, has no linear tets, or its mesh is invalid (names
+        the file).
+    """
+    import logging
+
+    import meshio
+
+    log = logging.getLogger("meshing.export")
+    path = Path(path)
+    if not path.is_file():
+        raise OSError(f"mesh file {path} does not exist")
+    try:
+        m = meshio.read(path)
+    except (Exception, SystemExit) as exc:  # meshio raises many types (even SystemExit)
+        raise ValueError(f"cannot read mesh {path}: {exc}") from None
+    blocks = [i for i, c in enumerate(m.cells) if c.type == "tetra"]
+    if not blocks:
+        kinds = sorted({c.type for c in m.cells})
+        raise ValueError(f"mesh {path} has no linear tetrahedra (cell types: {kinds})")
+    tets = np.concatenate([m.cells[i].data for i in blocks])
+    if "region" in m.cell_data:
+        region = np.concatenate([np.asarray(m.cell_data["region"][i]).reshape(-1)
+                                 for i in blocks])
+    else:
+        log.warning("%s has no cell data 'region': all tets get region 1", path)
+        region = np.ones(len(tets), np.int32)
+    node_sets = {}
+    for name, arr in m.point_data.items():
+        a = np.asarray(arr)
+        if a.ndim == 1 or (a.ndim == 2 and a.shape[1] == 1):
+            a = a.reshape(-1)
+            if np.all((a == 0) | (a == 1)):
+                node_sets[name] = np.flatnonzero(a)
+    nodes = np.asarray(m.points, float)[:, :3]
+    try:
+        return Mesh(nodes, tets, region, node_sets=node_sets)
+    except ValueError as exc:
+        raise ValueError(f"invalid mesh in {path}: {exc}") from None
 
 
 def write_ply(vertices: np.ndarray, triangles: np.ndarray, path: str | Path) -> Path:

@@ -71,7 +71,7 @@ def mesh_file(
     except (ValueError, RuntimeError) as exc:
         raise type(exc)(f"mesh [{labels_path}]: {exc}") from exc
     out.mkdir(parents=True, exist_ok=True)
-    write_vtu(mesh, out / "mesh.vtu")
+    write_vtu(out / "mesh.vtu", mesh)
     write_mesh_feb(mesh, out / "mesh.feb")
     mesh.save_npz(out / "mesh.npz")
     write_ply(skin_v, skin_f, out / "skin.ply")

@@ -158,9 +158,10 @@ def simulate_file(mesh_path: Path, config: dict[str, Any], out: Path, *,
                   config_path: Path | None = None) -> dict[str, Any]:
     """Solve ``mesh_path`` with ``config``; write result.vtu, solve.json, provenance."""
     from breastmodel.config import write_json, write_provenance
-    from mechanics.export import read_vtu, write_vtu
+    from mechanics.export import result_fields
     from mechanics.model import build_model
     from mechanics.solver import SolverError, solve
+    from meshing.export import read_vtu, write_vtu
 
     where = f"simulate config {config_path}" if config_path else "simulate config"
     materials, effects, options, formulation = model_inputs(config, where=where)
@@ -191,7 +192,9 @@ def simulate_file(mesh_path: Path, config: dict[str, Any], out: Path, *,
         "log": [dict(e) for e in state.log] if state is not None else [],
     }
     if state is not None:
-        write_vtu(out / "result.vtu", mesh, state)
+        pts, fields, cell_fields = result_fields(mesh, state)
+        write_vtu(out / "result.vtu", mesh, points=pts, fields=fields,
+                  cell_fields=cell_fields)
     write_json(out / "solve.json", summary)
     if error is not None:
         raise RuntimeError(f"simulate [{mesh_path}]: {error} (last converged state written to "

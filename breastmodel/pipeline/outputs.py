@@ -90,9 +90,9 @@ def write_position_meshes(out: Path, problem, position: str,
         ``{"mesh", "skin", "measured_skin"}`` file names.
     """
     from breastmodel.pipeline.problem import mesh_of, skin_node_regions
-    from mechanics.export import write_vtu
+    from mechanics.export import result_fields
     from mechanics.state import State
-    from meshing.export import write_vtp
+    from meshing.export import write_vtp, write_vtu
 
     x = np.asarray(predicted["x"], float)
     mesh = mesh_of(problem, len(x))
@@ -109,7 +109,8 @@ def write_position_meshes(out: Path, problem, position: str,
     state = State(x - X, True, 1.0, stress, J, pressure=pressure, X=X)
     names = {"mesh": f"{position}.vtu", "skin": f"{position}_skin.vtp",
              "measured_skin": f"{position}_measured_skin.vtp"}
-    write_vtu(out / names["mesh"], mesh, state, deformed=True)
+    pts, fields, cell_fields = result_fields(mesh, state, deformed=True)
+    write_vtu(out / names["mesh"], mesh, points=pts, fields=fields, cell_fields=cell_fields)
 
     nodes = np.asarray(predicted["skin_nodes"])
     faces = np.asarray(mesh.face_sets["skin"])

@@ -152,7 +152,7 @@ def test_quality_report(boxes):
 
 def test_exports_round_trip(boxes, tmp_path):
     _, mesh = boxes
-    m = meshio.read(write_vtu(mesh, tmp_path / "m.vtu"))
+    m = meshio.read(write_vtu(tmp_path / "m.vtu", mesh))
     assert np.allclose(m.points, mesh.nodes)
     assert np.array_equal(m.cells_dict["tetra"], mesh.tets)
     assert np.array_equal(m.cell_data["region"][0], mesh.region)

@@ -1,4 +1,5 @@
-"""VTU round trip and the ``breastmodel simulate`` command."""
+"""VTU round trip of a solved state (meshing.export, mechanics.export) and the
+``breastmodel simulate`` command."""
 
 import json
 
@@ -6,9 +7,10 @@ import numpy as np
 import pytest
 from zoo import hemisphere
 
-from mechanics.export import read_vtu, write_vtu
+from mechanics.export import result_fields
 from mechanics.model import build_model
 from mechanics.solver import SolverOptions, solve
+from meshing.export import read_vtu, write_vtu
 
 pytest.importorskip("meshio")
 
@@ -20,7 +22,8 @@ def test_vtu_round_trip_with_state(tmp_path):
     model = build_model(mesh, {1: {"name": "gent", "E": 1.0, "nu": 0.49, "Jm": 5.0}},
                         {"gravity": {"direction": (1, 0, 0)}, "fixed": {"node_set": "fixed"}})
     st = solve(model, options=SolverOptions(linear_solver="scipy"))
-    write_vtu(tmp_path / "r.vtu", mesh, st)
+    pts, fields, cells = result_fields(mesh, st)
+    write_vtu(tmp_path / "r.vtu", mesh, points=pts, fields=fields, cell_fields=cells)
     back = read_vtu(tmp_path / "r.vtu")
     np.testing.assert_array_equal(back.tets, mesh.tets)
     np.testing.assert_array_equal(back.region, mesh.region)

@@ -1,0 +1,82 @@
+"""The import contract: the stages import one way (DESIGN.md, STYLE.md).
+
+imaging and registration import no other stage of the project; meshing imports imaging and
+``mechanics.mesh`` only; mechanics imports the standard library, numpy and scipy (and the
+optional accelerators it guards); none of them imports ``breastmodel``.
+"""
+
+import ast
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PROJECT = {"imaging", "registration", "meshing", "mechanics", "breastmodel"}
+STDLIB = set(sys.stdlib_module_names)
+
+#: package -> project modules it may import (prefix match on dotted names)
+ALLOWED_PROJECT = {
+    "imaging": {"imaging"},
+    "registration": {"registration"},
+    "meshing": {"meshing", "imaging", "mechanics.mesh"},
+    "mechanics": {"mechanics"},
+}
+#: third-party packages mechanics may import (the accelerators are optional, guarded)
+MECHANICS_THIRD_PARTY = {"numpy", "scipy", "threadpoolctl", "pypardiso"}
+
+
+def imports(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted module) of every import in a file (relative imports resolved)."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    pkg = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.split(".")[: len(pkg.split(".")) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.append((node.lineno, mod))
+            out += [(node.lineno, f"{mod}.{a.name}") for a in node.names
+                    if mod.split(".")[0] in PROJECT]
+    return out
+
+
+def _allowed(package: str, module: str) -> bool:
+    top = module.split(".")[0]
+    if top in PROJECT:
+        return any(module == a or module.startswith(a + ".")
+                   for a in ALLOWED_PROJECT[package]) or (
+            # "from mechanics import mesh" names the module mechanics.mesh
+            package == "meshing" and module == "mechanics")
+    if package == "mechanics":
+        return top in STDLIB or top in MECHANICS_THIRD_PARTY or top == "__future__"
+    return True
+
+
+@pytest.mark.parametrize("package", sorted(ALLOWED_PROJECT))
+def test_stage_imports_follow_the_contract(package):
+    bad = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        for line, mod in imports(path):
+            if not _allowed(package, mod):
+                bad.append(f"{path.relative_to(ROOT)}:{line}: imports {mod}")
+    assert not bad, "import contract broken:\n" + "\n".join(bad)
+
+
+def test_the_contract_catches_a_violation(tmp_path):
+    f = ROOT / "mechanics" / "_probe_layers.py"
+    try:
+        f.write_text("import SimpleITK\nfrom breastmodel import cli\nfrom . import mesh\n")
+        mods = [m for _, m in imports(f)]
+        assert "mechanics.mesh" in mods  # relative import resolved
+        assert not _allowed("mechanics", "SimpleITK")
+        assert not _allowed("mechanics", "breastmodel.cli")
+        assert not _allowed("meshing", "mechanics.solver")
+        assert _allowed("meshing", "mechanics.mesh")
+    finally:
+        f.unlink()
