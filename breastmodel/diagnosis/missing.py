@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from breastmodel.diagnosis.budget import Budget, default_budget
 from breastmodel.diagnosis.candidates import Candidate, enumerate_candidates
 
 log = logging.getLogger("breastmodel.diagnosis")
@@ -62,7 +63,8 @@ SIGNIFICANT_EXPLAINED = 0.2
 
 
 def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
-                   settings: Mapping[str, Any]) -> dict:
+                   settings: Mapping[str, Any], *, budget: Budget | None = None,
+                   start: Mapping[str, Any] | None = None, keep_state: bool = False) -> dict:
     """Residuals of one model: stress-free geometry, then every position.
 
     Parameters
@@ -70,13 +72,20 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     model : a resolved ``[model]`` table
     problem_dir : the run's problem folder
     settings : ``{"solver", "stress_free", "positions"}``
+    budget : charged before every forward solve (default: unlimited)
+    start : ``{"X": (N, 3), "u": {position: (N, 3)}}`` a nearby model's solution, mm: the
+        stress-free inverse and every position start from it
+    keep_state : also return ``X`` and ``u`` per position (a later warm start)
 
     Returns
     -------
     dict
         ``residual`` {position: (n_skin,) signed error, mm, canonical skin-node order},
-        ``mhd_mm`` {position: mm}; raises on a failed solve (the sweep records it).
+        ``mhd_mm`` {position: mm}, ``solves`` (forward solves), ``wall_s``; raises on a
+        failed solve or a spent budget (the sweep records it).
     """
+    import time
+
     from breastmodel.evaluation import point_to_surface
     from breastmodel.pipeline.problem import (
         load_problem,
@@ -86,23 +95,76 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
         stress_free_geometry,
     )
 
+    t0 = time.perf_counter()
+    budget = budget or Budget(10**9, math.inf)
     problem = load_problem(problem_dir)
-    X, _ = stress_free_geometry(problem, model, settings["stress_free"], settings["solver"])
+    start = start or {}
+    u_start = start.get("u", {})
+    sf_start = (np.asarray(start["X"]), u_start.get(problem.reference)) if "X" in start \
+        else None
+    X, _ = stress_free_geometry(problem, model, settings["stress_free"], settings["solver"],
+                                before_solve=lambda: budget.charge("a stress-free iteration"),
+                                start=sf_start)
     out: dict[str, Any] = {"residual": {}, "mhd_mm": {}}
+    us = {}
     for pos in settings["positions"]:
-        x = predict_position(problem, model, X, pos, settings["solver"]).x
+        budget.charge(f"position {pos}")
+        u0 = u_start.get(pos)
+        x = predict_position(problem, model, X, pos, settings["solver"],
+                             u0=None if u0 is None else np.asarray(u0)).x
+        us[pos] = x - X
         d, _ = point_to_surface(x[skin_nodes(problem, len(x))], *problem.skins[pos],
                                 signed=True)
         out["residual"][pos] = d
         out["mhd_mm"][pos] = score_position(problem, x, pos)["mhd_mm"]
+    out["solves"] = budget.solves
+    out["wall_s"] = time.perf_counter() - t0
+    if keep_state:
+        out["X"], out["u"] = X, us
     return out
 
 
 def _variant_point(point: Mapping[str, Any], *, variants: Mapping[str, dict],
-                   problem_dir: str, settings: Mapping[str, Any]) -> dict:
-    res = evaluate_model(variants[point["variant"]], problem_dir, settings)
+                   problem_dir: str, settings: Mapping[str, Any],
+                   limits: tuple[int, float] | None = None,
+                   start: Mapping[str, Any] | None = None) -> dict:
+    budget = Budget(*limits) if limits else None
+    res = evaluate_model(variants[point["variant"]], problem_dir, settings, budget=budget,
+                         start=start)
     return {"residual": {p: np.asarray(v).tolist() for p, v in res["residual"].items()},
-            "mhd_mm": res["mhd_mm"]}
+            "mhd_mm": res["mhd_mm"], "solves": res["solves"], "eval_s": res["wall_s"]}
+
+
+def _base_evaluation(model: Mapping[str, Any], problem_dir: str | Path,
+                     settings: Mapping[str, Any], work_dir: Path) -> tuple[dict, dict]:
+    """The fitted model's evaluation (stored in ``work_dir``, reused by a rerun): its record
+    in the sweep's format and its solution (the variants' warm start)."""
+    import json
+    import os
+
+    path = work_dir / f"base-{_model_hash({'model': model, **settings})}.npz"
+    if path.is_file():
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            state = {"X": z["X"], "u": {p: z[f"u_{p}"] for p in meta["positions"]}}
+            meta["result"]["residual"] = {p: z[f"r_{p}"] for p in meta["positions"]}
+        return meta, state
+    try:
+        res = evaluate_model(model, problem_dir, settings, keep_state=True)
+    except Exception as exc:  # noqa: BLE001 - reported as the diagnosis' own error below
+        return {"status": "failed", "error": f"{type(exc).__name__}: {exc}"}, {}
+    pos = list(res["residual"])
+    rec = {"status": "ok", "error": None, "positions": pos,
+           "result": {"mhd_mm": res["mhd_mm"], "solves": res["solves"],
+                      "eval_s": res["wall_s"]}}
+    work_dir.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+    np.savez(tmp, meta=json.dumps(rec), X=res["X"],
+             **{f"u_{p}": res["u"][p] for p in pos}, **{f"r_{p}": res["residual"][p]
+                                                        for p in pos})
+    os.replace(tmp, path)
+    rec["result"]["residual"] = res["residual"]
+    return rec, {"X": res["X"], "u": res["u"]}
 
 
 def _log_step(value: float, lo: float, hi: float) -> float:
@@ -129,6 +191,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                     scheduler: str | None = None, verify_top: int = 1,
                     candidates: Sequence[Candidate] | None = None,
                     rim_mm: float = RIM_MM, verify_budget: int = 12,
+                    max_solves: int | None = None, max_seconds: float | None = None,
                     progress: bool = True) -> dict:
     """Score every candidate missing effect of a finished run.
 
@@ -144,6 +207,9 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
     candidates : override the enumeration (tests, or a user's own list)
     rim_mm : skin nodes closer than this to the skin's open edge (the field-of-view cut) are
         left out of the residual, mm (0 keeps every node)
+    max_solves, max_seconds : the budget of every variant's evaluation (forward solves,
+        seconds); default from the fitted model's own evaluation (:func:`default_budget`).
+        A variant that spends it fails with the reason, and the others still answer.
 
     Returns
     -------
@@ -196,19 +262,29 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
             v = float(c.start.get(f, get_param(cm, f) or 1.0))
             steps[f"cand|{c.name}|{f}"] = h = _log_step(v, lo, hi)
             variants[f"cand|{c.name}|{f}"] = set_params(cm, {f: v * math.exp(h)})
-    points = [{"variant": k, "model": _model_hash(m)} for k, m in variants.items()]
     work_dir = Path(work_dir) if work_dir else run.out / "diagnosis" / "evaluations"
-    if progress:
-        print(f"diagnose: {len(candidates)} candidates, {len(points)} model evaluations "
-              f"(stored in {work_dir})", flush=True)
-    fn = functools.partial(_variant_point, variants=variants, problem_dir=str(run.problem_dir),
-                           settings=settings)
-    recs = run_sweep(fn, points, work_dir, scheduler=scheduler, n_workers=n_workers,
-                     progress=progress)
-    res = {p["variant"]: r for p, r in zip(points, recs)}
-    if res["base"]["status"] != "ok":
+    base_rec, base_state = _base_evaluation(model, run.problem_dir, settings, work_dir)
+    if base_rec["status"] != "ok":
         raise RuntimeError(f"diagnose: the fitted model itself failed to solve: "
-                           f"{res['base']['error']}")
+                           f"{base_rec['error']}")
+    auto = default_budget(int(base_rec["result"]["solves"]), float(base_rec["result"]["eval_s"]))
+    limits = (int(max_solves) if max_solves else auto[0],
+              float(max_seconds) if max_seconds else auto[1])
+    points = [{"variant": k, "model": _model_hash(m)} for k, m in variants.items()
+              if k != "base"]
+    if progress:
+        print(f"diagnose: {len(candidates)} candidates, {len(points) + 1} model evaluations "
+              f"(stored in {work_dir}; each within {limits[0]} forward solves and "
+              f"{limits[1]:.0f} s)", flush=True)
+    fn = functools.partial(_variant_point, variants=variants, problem_dir=str(run.problem_dir),
+                           settings=settings, limits=limits, start=base_state)
+    recs = run_sweep(fn, points, work_dir, scheduler=scheduler, n_workers=n_workers,
+                     progress=progress, retry_failed=True)
+    res = {p["variant"]: r for p, r in zip(points, recs)}
+    res["base"] = base_rec
+    evaluation_cost = {k: {"status": r["status"], "solves": (r["result"] or {}).get("solves"),
+                           "seconds": (r["result"] or {}).get("eval_s", r.get("wall_s"))}
+                       for k, r in res.items()}
 
     # ---- geometry of the residual vector: which entries are which position / region
     nodes = skin_nodes(problem, mesh.n_nodes)
@@ -282,6 +358,11 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                     out[f"{p}.{name}"] = rms(r[s][m])
         return out
 
+    def _failure(c, variant):
+        r = res[variant]
+        return {"name": c.name, "kind": c.kind, "doc": c.doc, "evaluation": variant,
+                "error": r["error"], "seconds": r.get("wall_s")}
+
     base_regions = per_region(r_base)
     ranking, failed = [], []
     for c in candidates:
@@ -290,7 +371,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         if c.effects:
             rc = vec(f"cand|{c.name}")
             if rc is None:
-                failed.append({"name": c.name, "error": res[f"cand|{c.name}"]["error"]})
+                failed.append(_failure(c, f"cand|{c.name}"))
                 continue
             shift = rc - r0
             cols.append(shift)
@@ -301,7 +382,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         for f, (flo, fhi) in c.free.items():
             rf = vec(f"cand|{c.name}|{f}")
             if rf is None:
-                failed.append({"name": c.name, "error": res[f"cand|{c.name}|{f}"]["error"]})
+                failed.append(_failure(c, f"cand|{c.name}|{f}"))
                 ok = False
                 break
             cols.append((rf - rc) / steps[f"cand|{c.name}|{f}"])
@@ -368,7 +449,11 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         "fitted_parameters": fitted,
         "rim_mm": float(rim_mm), "n_skin_nodes": int(len(keep)), "n_scored_nodes": n_skin,
         "ranking": ranking, "skipped": skipped, "failed": failed,
-        "n_evaluations": len(points) + sum(r.get("verified", {}).get("evaluations", 0)
+        "budget": {"max_solves": limits[0], "max_seconds": limits[1],
+                   "base_solves": base_rec["result"]["solves"],
+                   "base_seconds": base_rec["result"]["eval_s"]},
+        "evaluations": evaluation_cost,
+        "n_evaluations": len(points) + 1 + sum(r.get("verified", {}).get("evaluations", 0)
                                            for r in ranking), "verdict": verdict,
     }
 
