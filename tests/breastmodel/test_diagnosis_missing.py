@@ -121,6 +121,7 @@ def test_the_diagnosis_ranks_the_hidden_skin_first(hidden_skin):
     assert "missing effect: skin" in d["verdict"]
     html = (root / "run0" / "diagnosis.html").read_text()
     assert "data:image/png;base64," in html and "--add-effect skin" in html
+    assert "Where each candidate acts" in html and "&Delta;BIC" in html
     where = json.loads((root / "run0" / "diagnosis.json").read_text())["where"]
     assert set(where["positions"]) == {"prone", "supine", "supine_tilted"}
 
