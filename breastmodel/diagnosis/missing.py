@@ -677,7 +677,11 @@ def _verdict(best: Mapping[str, Any], rms_base: float) -> str:
                 f"{'inwards' if s > 0 else 'outwards'} in every position (segmentation bias: "
                 f"correcting it lowers the residual RMS from {rms_base:.3f} to "
                 f"{best['predicted_rms_mm']:.3f} mm): check the skin threshold of `segment`")
-    return f"missing effect: {best['name']} ({best['doc']}); {gain}"
+    held = "".join(
+        f"; fitted on the calibration positions alone it changes the held-out {p} RMS from "
+        f"{v['rms_before_mm']:.3f} to {v['rms_after_mm']:.3f} mm"
+        for p, v in (best.get("held_out") or {}).items())
+    return f"missing effect: {best['name']} ({best['doc']}); {gain}{held}"
 
 
 def _corrected_problem(problem_dir: Path, out: Path, moves: Mapping[str, Any]) -> Path:

@@ -122,3 +122,11 @@ def test_an_ill_posed_candidate_fails_fast_and_the_others_still_answer(tmp_path,
     # the whole diagnosis is bounded by the budgets, not by the slow candidate's own pace
     assert wall < 60.0
     assert np.isfinite(d["ranking"][0]["predicted_rms_mm"])
+    # a rerun reuses the stored evaluations (the fitted model's solution included) and
+    # retries only the failed one, which fails again within its budget
+    again = rank_candidates(run, candidates=[slow, candidate_by_name(run.model, "skin")],
+                            progress=False, verify_top=0, max_seconds=LIMIT_S,
+                            work_dir=tmp_path / "ev")
+    assert again["ranking"][0]["predicted_rms_mm"] == d["ranking"][0]["predicted_rms_mm"]
+    assert again["budget"] == d["budget"]
+    assert [f["name"] for f in again["failed"]] == [slow_effect]
