@@ -21,10 +21,12 @@ BASE = {"materials": {"breast_left": {**NH, "E": 1.0}, "breast_right": {**NH, "E
                       "muscle": {**NH, "E": 10.0}},
         "effects": {"fixed": {"node_set": "fixed"}}}
 TIED_E = "materials.breast_left.E|materials.breast_right.E"
-#: Seconds one evaluation of the slow stand-in may spend.
-LIMIT_S = 2.0
-#: Seconds the stand-in sleeps per residual evaluation (a Newton iteration).
-SLEEP_S = 0.4
+#: Seconds one evaluation may spend: several times what a model of the test's size takes on
+#: a loaded machine, so that only the stand-in below spends it.
+LIMIT_S = 10.0
+#: Seconds the stand-in sleeps per residual evaluation (a Newton iteration): two positions
+#: of a few iterations each spend the limit.
+SLEEP_S = 2.0
 
 
 def test_budget_counts_solves_and_seconds():
@@ -113,14 +115,14 @@ def test_an_ill_posed_candidate_fails_fast_and_the_others_still_answer(tmp_path,
     failed = {f["name"]: f for f in d["failed"]}
     assert set(failed) == {slow_effect}
     assert "BudgetExceeded" in failed[slow_effect]["error"]
-    assert "s spent (limit 2.0 s)" in failed[slow_effect]["error"]
+    assert "s spent (limit 10.0 s)" in failed[slow_effect]["error"]
     # it stopped within its seconds plus one forward solve (a few Newton iterations)
     assert failed[slow_effect]["seconds"] < LIMIT_S + 10 * SLEEP_S
     assert [r["name"] for r in d["ranking"]] == ["skin"] and d["ranking"][0]["significant"]
     assert d["budget"]["max_seconds"] == LIMIT_S
     assert d["evaluations"][f"cand|{slow_effect}"]["status"] == "failed"
     # the whole diagnosis is bounded by the budgets, not by the slow candidate's own pace
-    assert wall < 60.0
+    assert wall < 120.0
     assert np.isfinite(d["ranking"][0]["predicted_rms_mm"])
     # a rerun reuses the stored evaluations (the fitted model's solution included) and
     # retries only the failed one, which fails again within its budget
