@@ -13,8 +13,9 @@ a suite of FEBio-simulated subjects plugs in as another ``--suite`` that yields 
 :class:`Case` rows (a problem folder, a run config, the truth's label).
 
 Run: ``.venv/bin/python bench/diagnosis_matrix.py [--cells 8 6 3 2] [--stress-free inverse]
-[--cases skin,none] [--workers 2] [--out /tmp/matrix]``. ``--cells 26 16 6 2`` is a 20k-tet
-subject (the diagnosis' time target: <= 10 minutes on 2 cores).
+[--cases skin,none] [--workers 2] [--out /tmp/matrix] [--results FILE.json]``.
+``--cells 26 16 6 2`` is a 20k-tet subject (the diagnosis' time target: <= 10 minutes on 2
+cores).
 """
 
 from __future__ import annotations
@@ -134,6 +135,9 @@ def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
     truth = next((r for r in d["ranking"] if r["name"] == case.label), None)
     worst = max(d["baseline"]["mhd_mm"].values())
     ver = (sig[0].get("verified") or {}) if sig else {}
+    # held-out check: the truth against the best wrong candidate of the same parameter count
+    wrong = next((r for r in d["ranking"] if truth and r["name"] != case.label
+                  and r["n_parameters"] == truth["n_parameters"] and r.get("held_out")), None)
     return {
         "label": case.label, "answer": answer,
         "rank": names.index(case.label) + 1 if case.label in names else None,
@@ -141,7 +145,10 @@ def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
         "delta_bic": truth["delta_bic"] if truth else None,
         "worst_mhd_mm": worst,
         "verified_worst_mhd_mm": max(ver["mhd_mm"].values()) if ver.get("mhd_mm") else None,
+        "held_out_truth": truth.get("held_out") if truth else None,
+        "held_out_wrong": {"name": wrong["name"], **wrong["held_out"]} if wrong else None,
         "failed": [f["name"] for f in d["failed"]], "n_evaluations": d["n_evaluations"],
+        "budget": d["budget"],
         "run_s": t_run, "diagnose_s": wall,
         "diagnose_cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system),
         "verdict": d["verdict"],
@@ -177,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default=",".join(MOUND_CASES))
     ap.add_argument("--workers", type=int, default=0)
     ap.add_argument("--out", type=Path, default=Path("/tmp/diagnosis_matrix"))
+    ap.add_argument("--results", type=Path, default=_HERE / "results" / "diagnosis_matrix.json")
     args = ap.parse_args(argv)
     names = [n for n in args.cases.split(",") if n]
     unknown = sorted(set(names) - set(MOUND_CASES))
@@ -197,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{summary['false_alarms_on_none']}, verified re-fit halves the worst MHD: "
           f"{summary['halved']}")
     n_tets = 6 * args.cells[0] * args.cells[1] * (args.cells[2] + args.cells[3])
-    write_json(_HERE / "results" / "diagnosis_matrix.json", {
+    write_json(args.results, {
         "suite": "mounds", "cells": list(args.cells), "n_tets": n_tets,
         "stress_free": args.stress_free, "workers": args.workers, "rows": rows,
         "summary": summary, "machine": platform.node(), "cpus": os.cpu_count()})
