@@ -101,7 +101,8 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     settings : ``{"solver", "stress_free", "positions"}``
     budget : charged before every forward solve (default: unlimited)
     start : ``{"X": (N, 3), "u": {position: (N, 3)}}`` a nearby model's solution, mm: the
-        stress-free inverse and every position start from it
+        stress-free inverse and every position start from it (ignored when the model's mesh
+        has another node count, e.g. a split interface)
     keep_state : also return ``X`` and ``u`` per position (a later warm start)
 
     Returns
@@ -116,6 +117,7 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     from breastmodel.evaluation import point_to_surface
     from breastmodel.pipeline.problem import (
         load_problem,
+        model_mesh,
         predict_position,
         score_position,
         skin_nodes,
@@ -126,6 +128,8 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     budget = budget or Budget(10**9, math.inf)
     problem = load_problem(problem_dir)
     start = start or {}
+    if "X" in start and len(start["X"]) != model_mesh(problem, model).n_nodes:
+        start = {}  # another mesh (a split interface added or removed): no warm start
     u_start = start.get("u", {})
     sf_start = (np.asarray(start["X"]), u_start.get(problem.reference)) if "X" in start \
         else None
