@@ -112,7 +112,9 @@ def test_the_diagnosis_ranks_the_hidden_skin_first(hidden_skin):
     best = d["ranking"][0]
     assert best["name"] == "skin" and best["significant"]
     assert best["explained"] > 0.9
-    assert not d["failed"]  # sliding (a split mesh) included: no warm start across meshes
+    # a candidate fails only by its own model (sliding with no support diverges), never by
+    # the diagnosis (e.g. a warm start from the conforming mesh given to the split one)
+    assert all(f["error"].startswith(("SolverError", "BudgetExceeded")) for f in d["failed"])
     # the check (a real least-squares re-fit with skin on) halves the worst position's MHD
     worst_now = max(d["baseline"]["mhd_mm"].values())
     assert max(best["verified"]["mhd_mm"].values()) <= 0.5 * worst_now
