@@ -57,8 +57,12 @@ def inverse_fixed_point(
     max_iter: int = 50,
     anderson: int = 5,
     max_failures: int = 3,
+    max_total_failures: int = 6,
+    X0: np.ndarray | None = None,
+    u0: np.ndarray | None = None,
     options: SolverOptions = SolverOptions(),
     callback: Callable[[dict], None] | None = None,
+    before_solve: Callable[[], None] | None = None,
 ) -> StressFreeResult:
     """Reference positions whose loaded configuration under ``model`` is ``x_target``.
 
@@ -72,26 +76,35 @@ def inverse_fixed_point(
     max_failures : consecutive failed forward solves (each damped half-way back to the last
         good estimate) before giving up: a model with no equilibrium near the target would
         otherwise spend ``max_iter`` full cut-back cascades
+    max_total_failures : failed forward solves allowed in all (a model that fails, damps,
+        recovers and fails again does not converge either)
+    X0, u0 : (N, 3) initial estimate of X and of the displacement, mm (default: ``x_target``
+        and none; a nearby model's solution makes a warm start)
     callback : called with each iteration's history row (progress reporting)
+    before_solve : called before every forward solve; it may raise to stop the inverse (a
+        caller's budget of solves or seconds)
     """
     x_target = np.asarray(x_target, np.float64)
-    X = x_target.copy()
-    u = None
+    X = x_target.copy() if X0 is None else np.array(X0, np.float64)
+    u = None if u0 is None else np.asarray(u0, np.float64)
     V: list[np.ndarray] = []
     F: list[np.ndarray] = []
     history: list[dict] = []
     state = None
     X_good = None  # the last estimate whose forward solve converged
-    failures = 0
+    failures = total_failures = 0
     t0 = time.perf_counter()
     for it in range(1, max_iter + 1):
+        if before_solve is not None:
+            before_solve()
         try:
             state = _forward(model, X, u, options)
         except SolverError as exc:
             failures += 1
-            if X_good is None or failures > max_failures:
-                log.warning("inverse: giving up after %d consecutive failed forward solves",
-                            failures)
+            total_failures += 1
+            if X_good is None or failures > max_failures or total_failures > max_total_failures:
+                log.warning("inverse: giving up after %d failed forward solves (%d in a row)",
+                            total_failures, failures)
                 raise
             # The update went too far: step back half-way to the last good estimate.
             log.warning("inverse: forward solve failed (%s); damping the update", exc)
@@ -145,6 +158,7 @@ def paper_fixed_point(
     max_iter: int = 30,
     options: SolverOptions = SolverOptions(),
     callback: Callable[[dict], None] | None = None,
+    before_solve: Callable[[], None] | None = None,
 ) -> StressFreeResult:
     """The paper's fixed point on a measured surface (Mîra et al., Fig. 2).
 
@@ -159,6 +173,7 @@ def paper_fixed_point(
     X0 : initial estimate (default the mesh nodes, i.e. the reference-position geometry)
     lam : fraction of the correction imposed per iteration (paper: lambda < 1)
     min_improvement : stop when the mean error improves by less than this, mm (paper: 1 mm)
+    before_solve : called before every forward solve; it may raise to stop (a caller's budget)
     """
     if not 0.0 < lam <= 1.0:
         raise ValueError(f"stress-free: lam must be in (0, 1], got {lam}")
@@ -174,6 +189,8 @@ def paper_fixed_point(
     u = None
     stuck = False
     for it in range(1, max_iter + 1):
+        if before_solve is not None:
+            before_solve()
         state = _forward(model, X, u, options)
         u = state.u
         x_act = state.x[active]

@@ -7,7 +7,11 @@ inframammary fold, nipple area, left/right) with normal and tangential parts and
 against local strain; then every registered effect the model does not use, and every
 parameter it holds fixed, ranked by how much of the residual it explains after re-fitting,
 with the predicted error per position, the evidence per region, a real check of the best
-candidate, and a plain verdict when nothing explains more than the noise floor.
+candidate, and a plain verdict when nothing explains more than the noise floor. Errors of
+the measurement are candidates too: a rigid misregistration of each position and an offset
+of the measured skin. Every candidate's score charges its parameters (an information
+criterion) and is checked on the position the run held out; every model evaluation has a
+budget of forward solves and seconds.
 Model evaluations are stored in ``DIR/diagnosis/evaluations`` (a rerun resumes).
 """
 
@@ -34,6 +38,13 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--rim-mm", type=float, default=None,
                    help="leave skin nodes this close to the skin's open edge (the field-of-view "
                         "cut) out of the ranking, mm (default 15; 0 keeps all)")
+    p.add_argument("--max-solves", type=int, default=None,
+                   help="forward solves one model evaluation may spend (default: 3x the fitted "
+                        "model's own evaluation, at least 4 more)")
+    p.add_argument("--max-seconds", type=float, default=None,
+                   help="seconds one model evaluation may spend (default: 3x the fitted "
+                        "model's own evaluation, at least 20 s); an evaluation that spends "
+                        "its budget fails with the reason and the others still answer")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -42,12 +53,17 @@ def run(args: argparse.Namespace) -> int:
     from breastmodel.diagnosis.diagnose import diagnose
 
     d = diagnose(args.run_dir, n_workers=args.workers, scheduler=args.scheduler,
-                 verify_top=args.verify_top, rim_mm=args.rim_mm, progress=not args.quiet)
+                 verify_top=args.verify_top, rim_mm=args.rim_mm, max_solves=args.max_solves,
+                 max_seconds=args.max_seconds, progress=not args.quiet)
     m = d["missing"]
     print(m["verdict"])
-    print(f"{'#':>3} {'candidate':<40} {'explained':>9} {'pred. RMS':>9}  significant")
+    print(f"{'#':>3} {'candidate':<40} {'k':>2} {'explained':>9} {'dBIC':>7} {'pred. RMS':>9}"
+          "  significant")
     for i, r in enumerate(m["ranking"][:10], 1):
-        print(f"{i:3d} {r['name']:<40} {100 * r['explained']:8.0f}% {r['predicted_rms_mm']:9.3f}"
+        print(f"{i:3d} {r['name']:<40} {r['n_parameters']:2d} {100 * r['explained']:8.0f}% "
+              f"{r['delta_bic']:7.1f} {r['predicted_rms_mm']:9.3f}"
               f"  {'yes' if r['significant'] else 'no'}")
+    for f in m["failed"]:
+        print(f"failed: {f['name']}: {f['error']}")
     print(f"report: {Path(args.run_dir) / 'diagnosis.html'}")
     return 0

@@ -47,6 +47,10 @@ class Candidate:
     amplitude : bounds of the switch-on's linear amount ((0, 0) when nothing is switched)
     replaces : fitted parameter paths that the candidate makes inert (dropped on refit)
     start : {parameter path: value} where the candidate's free parameters start
+    measurement : "" for a change of the model; "rigid" or "offset" for an error of the
+        measured skin, whose linear columns need no model evaluation
+        (:mod:`breastmodel.diagnosis.measurement`)
+    acts_on : positions a measurement candidate changes (empty: every position)
     """
 
     name: str
@@ -57,6 +61,8 @@ class Candidate:
     amplitude: tuple[float, float] = (1.0, 1.0)
     replaces: tuple[str, ...] = ()
     start: Mapping[str, float] = field(default_factory=dict)
+    measurement: str = ""
+    acts_on: tuple[str, ...] = ()
 
     def apply(self, model: Mapping[str, Any]) -> dict:
         """A copy of the ``[model]`` table with this candidate switched on."""
@@ -74,7 +80,8 @@ class Candidate:
         return {"name": self.name, "kind": self.kind, "doc": self.doc,
                 "effects": dict(self.effects), "free": {k: list(v) for k, v in self.free.items()},
                 "amplitude": list(self.amplitude), "replaces": list(self.replaces),
-                "start": dict(self.start)}
+                "start": dict(self.start), "measurement": self.measurement,
+                "acts_on": list(self.acts_on)}
 
 
 def _bounds(param) -> tuple[float, float]:

@@ -14,12 +14,17 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 __all__ = ["diagnose", "write_diagnosis_html"]
 
 
 def diagnose(run_dir: str | Path, *, n_workers: int = 0, scheduler: str | None = None,
-             verify_top: int = 1, rim_mm: float | None = None, progress: bool = True) -> dict:
+             verify_top: int = 1, rim_mm: float | None = None, max_solves: int | None = None,
+             max_seconds: float | None = None, progress: bool = True) -> dict:
     """Diagnose the run in ``run_dir``; returns what ``diagnosis.json`` holds.
+
+    The options are those of :func:`~breastmodel.diagnosis.missing.rank_candidates`.
 
     Raises
     ------
@@ -37,21 +42,62 @@ def diagnose(run_dir: str | Path, *, n_workers: int = 0, scheduler: str | None =
     where = failure_tables(run, maps=maps, regions=regions)
     kw = {} if rim_mm is None else {"rim_mm": rim_mm}
     missing = rank_candidates(run, n_workers=n_workers, scheduler=scheduler,
-                              verify_top=verify_top, progress=progress, **kw)
+                              verify_top=verify_top, progress=progress,
+                              max_solves=max_solves, max_seconds=max_seconds, **kw)
     out = {"subject": run.subject, "run": str(run.out), "where": where, "missing": missing}
     write_json(run.out / "diagnosis.json", out)
     write_diagnosis_html(run.out / "diagnosis.html", out, maps)
     return out
 
 
-def _table(header, rows) -> str:
+def _table(header, rows, *, raw_header: bool = False) -> str:
     def cell(v):
         if isinstance(v, float):
             return f"{v:.3f}"
         return html.escape(str(v))
-    head = "".join(f"<th>{html.escape(str(h))}</th>" for h in header)
+    head = "".join(f"<th>{h if raw_header else html.escape(str(h))}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>" for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def correction_rows(miss: Mapping[str, Any]) -> dict[str, dict[str, np.ndarray]]:
+    """Rows of the correction maps: the residual after re-fitting alone, then what each
+    mapped candidate explains (minus its predicted change of the residual), per position as
+    a value per skin node in canonical order (NaN on the unscored rim), mm."""
+    cm = miss.get("correction_maps")
+    if not cm:
+        return {}
+    idx, n = np.asarray(cm["index"], int), int(cm["n_skin_nodes"])
+    k = len(idx)
+
+    def split(v):
+        out = {}
+        for i, p in enumerate(cm["positions"]):
+            full = np.full(n, np.nan)
+            full[idx] = np.asarray(v[i * k:(i + 1) * k], float)
+            out[p] = full
+        return out
+
+    rows = {"residual": split(cm["residual"])}
+    for name, v in cm["corrections"].items():
+        rows[f"explained by {name}"] = split(-np.asarray(v, float))
+    return rows
+
+
+def _correction_maps(miss: Mapping[str, Any], maps: Mapping[str, Any]) -> list[str]:
+    from breastmodel.diagnosis.views import img_tag, value_maps_figure
+
+    rows = correction_rows(miss)
+    if not rows:
+        return []
+    return ["<h3>Where each candidate acts</h3>",
+            "<p>First row: the residual after re-fitting the fitted parameters alone (anterior "
+            "view; the unscored rim is blank). Below, for each of the best candidates, the "
+            "part of that residual it explains (minus its predicted change of the residual), "
+            "on the same colour scale: a candidate that explains the residual looks like the "
+            "first row.</p>",
+            img_tag(value_maps_figure({p: maps[p] for p in miss["objective_positions"]
+                                       if p in maps}, rows), "correction maps")]
 
 
 def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
@@ -89,31 +135,60 @@ def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
               img_tag(error_vs_strain_figure(
                   maps, tables={p: t["error_vs_strain"] for p, t in where["positions"].items()}),
                   "error vs strain")]
-    parts.append("<h2>2. Which effect is missing</h2>")
+    parts.append("<h2>2. What is missing</h2>")
+    parts.append(
+        "<p>Physical effects the model does not use, parameters it holds fixed, and errors of "
+        "the measurement itself (a rigid misregistration of one position: 6 parameters; an "
+        "offset of the measured skin: 1), each scored by the residual left after a linear "
+        "re-fit with it. &Delta;BIC = n<sub>eff</sub> ln(SS/SS<sub>0</sub>) + k "
+        f"ln(n<sub>eff</sub>) charges every added parameter (n<sub>eff</sub> = "
+        f"{miss.get('n_effective', float('nan')):.0f} independent residuals of "
+        f"{miss['n_scored_nodes'] * len(miss['objective_positions'])}); a candidate explains "
+        "more than the noise when &Delta;BIC &lt; -6, it removes at least 20 % of the squared "
+        "residual and a quarter of the noise floor. Held out: the RMS of a position the run "
+        "did not calibrate on, re-fitted on the calibration positions only, without -> with "
+        "the candidate (a real effect improves it too).</p>")
     pos = miss["objective_positions"]
     rows = []
     for i, r in enumerate(miss["ranking"], 1):
-        est = ", ".join(f"{k.split('.', 1)[1]}={v:.3g}" for k, v in r["estimate"].items())
+        est = ", ".join(f"{k.split('.', 1)[-1]}={v:.3g}" for k, v in r["estimate"].items())
         ev = "; ".join(f"{e['where']} {e['rms_before_mm']:.2f}->{e['rms_after_mm']:.2f}"
                        for e in r["evidence"][:3])
         ver = r.get("verified", {})
         vtxt = ("" if not ver else ver.get("error") or
                 ", ".join(f"{p} {v:.2f}" for p, v in ver["mhd_mm"].items()))
-        rows.append([i, r["name"], r["kind"], "yes" if r["significant"] else "no",
-                     f"{100 * r['explained']:.0f} %", r["predicted_rms_mm"],
-                     *[r["predicted"][p]["rms_mm"] for p in pos], est, ev, vtxt])
-    parts.append(_table(["#", "candidate", "kind", "explains more than noise", "explained",
-                         "predicted RMS", *[f"RMS {p}" for p in pos], "estimate",
+        ho = "; ".join(f"{p} {v['rms_before_mm']:.2f}->{v['rms_after_mm']:.2f}"
+                       for p, v in (r.get("held_out") or {}).items()) or "n/a"
+        rows.append([i, r["name"], r["kind"], r.get("n_parameters", ""),
+                     "yes" if r["significant"] else "no", f"{100 * r['explained']:.0f} %",
+                     r.get("delta_bic", float("nan")), r["predicted_rms_mm"],
+                     *[r["predicted"][p]["rms_mm"] for p in pos], ho, est, ev, vtxt])
+    parts.append(_table(["#", "candidate", "kind", "k", "explains more than noise",
+                         "explained", "&Delta;BIC", "predicted RMS",
+                         *[f"RMS {p}" for p in pos], "held out (RMS)", "estimate",
                          "evidence (region RMS before->after)",
-                         "MHD after a real re-fit with it (mm)"], rows))
+                         "MHD after a real re-fit with it (mm)"], rows, raw_header=True))
     if miss["failed"]:
+        b = miss.get("budget", {})
         parts += ["<h3>Candidates whose evaluation failed</h3>",
-                  _table(["candidate", "error"], [[f["name"], f["error"]]
-                                                  for f in miss["failed"]])]
+                  f"<p>Each evaluation may spend {b.get('max_solves', '?')} forward solves and "
+                  f"{b.get('max_seconds', float('nan')):.0f} s (the fitted model's own took "
+                  f"{b.get('base_solves', '?')} and {b.get('base_seconds', float('nan')):.1f} "
+                  "s).</p>",
+                  _table(["candidate", "kind", "evaluation", "seconds", "reason"],
+                         [[f["name"], f.get("kind", ""), f.get("evaluation", ""),
+                           f.get("seconds") or float("nan"), f["error"]]
+                          for f in miss["failed"]])]
+    parts += _correction_maps(miss, maps)
     parts += ["<h3>Not scored</h3>",
               _table(["name", "reason"], [[s["name"], s["reason"]] for s in miss["skipped"]])]
     sig = [r for r in miss["ranking"] if r["significant"]]
-    if sig:
+    if sig and sig[0].get("measurement"):
+        parts.append("<h2>3. Correct the measurement</h2><p>"
+                     f"{html.escape(miss['verdict'])}. The estimate: "
+                     + html.escape(", ".join(f"{k.split('.', 1)[-1]} = {v:.2f}" for k, v in
+                                             sig[0]["estimate"].items())) + "</p>")
+    elif sig:
         parts.append("<h2>3. Add it and watch the error fall</h2><pre>breastmodel run SUBJECT "
                      f"--config RUN.toml --out DIR2 --add-effect {html.escape(sig[0]['name'])}\n"
                      f"breastmodel compare {html.escape(str(diag['run']))} DIR2 --out "

@@ -26,7 +26,7 @@ import numpy as np
 
 __all__ = [
     "VIEWS", "error_limit", "error_maps_figure", "error_vs_strain_figure", "img_tag",
-    "png_base64", "png_bytes", "revision_figure",
+    "png_base64", "png_bytes", "revision_figure", "value_maps_figure",
 ]
 
 #: name -> (direction towards the viewer, horizontal axis, vertical axis), unit vectors, LPS.
@@ -132,6 +132,46 @@ def error_maps_figure(rows: Mapping[str, Mapping[str, Any]], *,
     fig.colorbar(pc, ax=axes, shrink=0.8, label=CBAR_LABEL)
     if title:
         fig.suptitle(title)
+    return fig
+
+
+def value_maps_figure(maps: Mapping[str, Mapping[str, Any]],
+                      rows: Mapping[str, Mapping[str, np.ndarray]], *,
+                      view: str = "anterior", limit: float | None = None):
+    """One row per label, one column per position: a value per skin node (NaN: not drawn)
+    on the predicted skin of that position, one symmetric colour scale for all.
+
+    Parameters
+    ----------
+    maps : position -> :func:`~breastmodel.diagnosis.maps.failure_map` dict (the skin)
+    rows : label -> {position: (n,) value per skin node of that map, mm}
+    view : a name of :data:`VIEWS`
+    limit : colour limit, mm (default: the 98th percentile of |value| over every row)
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    plt = _plt()
+    positions = [p for p in maps if any(p in r for r in rows.values())]
+    if not rows or not positions:
+        raise ValueError("diagnose: no map to draw")
+    if limit is None:
+        limit = error_limit({"signed_error": v} for r in rows.values() for v in r.values())
+    fig, axes = plt.subplots(len(rows), len(positions), squeeze=False, layout="constrained",
+                             figsize=(3.4 * len(positions) + 1.0, 2.6 * len(rows)))
+    pc = None
+    for i, (label, vals) in enumerate(rows.items()):
+        for j, pos in enumerate(positions):
+            ax = axes[i, j]
+            if pos not in vals:
+                ax.set_axis_off()
+                continue
+            fm = {**maps[pos], "signed_error": np.asarray(vals[pos], float)}
+            pc = draw_error_map(ax, fm, view, limit=limit)
+            ax.set_title(f"{label}: {pos}", fontsize=8)
+    if pc is not None:
+        fig.colorbar(pc, ax=axes, shrink=0.8, label="mm (+ = predicted outside measured skin)")
     return fig
 
 

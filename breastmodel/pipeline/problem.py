@@ -159,12 +159,16 @@ def _paper_position(problem: Problem, sf: Mapping[str, Any]) -> str:
 
 def stress_free_geometry(problem: Problem, model: Mapping[str, Any], sf: Mapping[str, Any],
                          solver: Mapping[str, Any], *,
-                         callback: Callable[[dict], None] | None = None):
+                         callback: Callable[[dict], None] | None = None,
+                         before_solve: Callable[[], None] | None = None,
+                         start: tuple[np.ndarray, np.ndarray | None] | None = None):
     """Stress-free node positions by the method of the ``[stress_free]`` table.
 
     ``"inverse"``: full-field inverse of the reference position (its mesh nodes are measured
     loaded positions), Anderson-accelerated. ``"paper"``: the paper's fixed point on the
     measured skin of ``sf["position"]`` (default prone). ``"none"``: the reference geometry.
+    ``before_solve`` is called before every forward solve (it may raise: a caller's budget);
+    ``start`` = (X0, u0) warm-starts the inverse from a nearby model's solution (mm).
 
     Returns
     -------
@@ -186,9 +190,11 @@ def stress_free_geometry(problem: Problem, model: Mapping[str, Any], sf: Mapping
         return np.array(mesh.nodes, float), {"method": "none", "converged": True, "history": []}
     if method == "inverse":
         m = position_model(problem, model, problem.reference)
+        X0, u0 = start if start is not None else (None, None)
         res = inverse_fixed_point(m, mesh.nodes, tol=float(sf["tol_mm"]),
                                   max_iter=int(sf["max_iter"]), anderson=int(sf["anderson"]),
-                                  options=opts, callback=callback)
+                                  X0=X0, u0=u0, options=opts, callback=callback,
+                                  before_solve=before_solve)
         pos = problem.reference
     else:
         pos = _paper_position(problem, sf)
@@ -198,7 +204,8 @@ def stress_free_geometry(problem: Problem, model: Mapping[str, Any], sf: Mapping
         res = paper_fixed_point(m, lambda y: surf.closest(y)[0], active,
                                 mesh.node_sets["fixed"], lam=float(sf["lam"]),
                                 min_improvement=float(sf["min_improvement_mm"]),
-                                max_iter=int(sf["max_iter"]), options=opts, callback=callback)
+                                max_iter=int(sf["max_iter"]), options=opts, callback=callback,
+                                before_solve=before_solve)
     info = {"method": res.method, "position": pos, "converged": bool(res.converged),
             "forward_solves": len(res.history), "history": [dict(r) for r in res.history]}
     return np.asarray(res.X, float), info

@@ -1,0 +1,216 @@
+"""Benchmark: the diagnosis as a classifier, a confusion matrix over known causes.
+
+Every case is a subject whose data carry one known cause of misfit that the fitted model
+lacks: a hidden physical effect, a misregistered position, an offset of the measured skin,
+or nothing ("none": noise only). The diagnosis runs on the fitted model; its answer is the
+best significant candidate, or "none". The table gives, per case, the truth, the answer, the
+truth's rank, its explained fraction and delta BIC, the verified worst MHD against the
+run's, and the wall time of the diagnosis; then top-1 and top-3 rates, false alarms on
+"none" and the confusion matrix. Results go to ``bench/results/diagnosis_matrix.json``.
+
+The subjects here are two-mound problems (:mod:`breastmodel.phantom.mounds`, seconds each);
+a suite of FEBio-simulated subjects plugs in as another ``--suite`` that yields the same
+:class:`Case` rows (a problem folder, a run config, the truth's label).
+
+Run: ``.venv/bin/python bench/diagnosis_matrix.py [--cells 8 6 3 2] [--stress-free inverse]
+[--cases skin,none] [--workers 2] [--out /tmp/matrix] [--results FILE.json]``.
+``--cells 26 16 6 2`` is a 20k-tet subject (the diagnosis' time target: <= 10 minutes on 2
+cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import os
+import platform
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+_HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
+
+from breastmodel.config import write_json  # noqa: E402
+from breastmodel.diagnosis import load_run, rank_candidates  # noqa: E402
+from breastmodel.phantom.mounds import mound_problem  # noqa: E402
+from breastmodel.pipeline.config import resolve_config  # noqa: E402
+from breastmodel.pipeline.problem import forget_problem  # noqa: E402
+from breastmodel.pipeline.run import run_problem  # noqa: E402
+
+NH = {"name": "neo_hookean", "nu": 0.49}
+BASE = {"materials": {"breast_left": {**NH, "E": 1.0}, "breast_right": {**NH, "E": 1.0},
+                      "muscle": {**NH, "E": 10.0}},
+        "effects": {"fixed": {"node_set": "fixed"}}}
+TIED = "materials.breast_left.E|materials.breast_right.E"
+
+
+@dataclass(frozen=True)
+class Case:
+    """One subject of the matrix: its label (the candidate name the diagnosis should give, or
+    "none"), its problem folder and the run config of the fitted model."""
+
+    label: str
+    problem: Path
+    config: dict
+
+
+def _with(**effects) -> dict:
+    out = copy.deepcopy(BASE)
+    out["effects"].update(effects)
+    return out
+
+
+def _move_skin(folder: Path, position: str, move: Callable) -> None:
+    path = folder / f"{position}_skin.npz"
+    with np.load(path) as z:
+        v, t = z["vertices"].copy(), z["triangles"].copy()
+    np.savez(path, vertices=move(v, t), triangles=t)
+    forget_problem(folder)
+
+
+def _rigid(v, t):
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.radians(1.5) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    return v @ R.T + np.array([3.0, 1.0, -2.5])
+
+
+def _offset(v, t):
+    from breastmodel.diagnosis.measurement import _vertex_normals
+
+    return v + 1.0 * _vertex_normals(v, t)
+
+
+#: label -> (truth model, change of the measured skins or None, noise mm)
+MOUND_CASES = {
+    "skin": (_with(skin={"E": 4.0}), None, 0.0),
+    "regions:asymmetry": (_with(regions={"E_left": 0.6, "E_right": 1.5, "gland": False}),
+                          None, 0.0),
+    "strain_stiffening": (_with(strain_stiffening={"Jm": 0.1}), None, 0.0),
+    "ligaments:lateral": (_with(ligaments={"groups": ["lateral"], "E": 800.0}), None, 0.0),
+    "misregistration:supine_tilted": (BASE, {"supine_tilted": _rigid}, 0.0),
+    "misregistration:prone": (BASE, {"prone": _rigid}, 0.0),
+    "skin_offset": (BASE, {p: _offset for p in ("prone", "supine", "supine_tilted")}, 0.0),
+    "none": (BASE, None, 0.1),
+}
+
+
+def mound_suite(root: Path, names: list[str], *, cells: tuple[int, ...],
+                stress_free: str) -> Iterator[Case]:
+    """Two-mound subjects, one per name of :data:`MOUND_CASES`."""
+    for name in names:
+        truth, moves, noise = MOUND_CASES[name]
+        folder = root / name.replace(":", "_") / "problem"
+        mound_problem(folder, truth, cells=tuple(cells), stress_free=stress_free,
+                      noise_mm=noise, seed=3)
+        for pos, move in (moves or {}).items():
+            _move_skin(folder, pos, move)
+        cfg = resolve_config({
+            "model": copy.deepcopy(BASE), "stress_free": {"method": stress_free},
+            "fit": {"enabled": True, "budget": 20, "sensitivity": False,
+                    "method": "least_squares", "calibrate": ["prone", "supine"],
+                    "parameters": {TIED: {"min": 0.2, "max": 5.0}}}})
+        yield Case(name, folder, cfg)
+
+
+def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
+    run_dir = out / case.label.replace(":", "_") / "run"
+    t0 = time.perf_counter()
+    run_problem(case.problem, case.config, run_dir, progress=False)
+    t_run = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cpu0 = os.times()
+    d = rank_candidates(load_run(run_dir), progress=False, n_workers=workers,
+                        work_dir=run_dir / "diagnosis" / "evaluations")
+    cpu1 = os.times()
+    wall = time.perf_counter() - t0
+    names = [r["name"] for r in d["ranking"]]
+    sig = [r for r in d["ranking"] if r["significant"]]
+    answer = sig[0]["name"] if sig else "none"
+    truth = next((r for r in d["ranking"] if r["name"] == case.label), None)
+    worst = max(d["baseline"]["mhd_mm"].values())
+    ver = (sig[0].get("verified") or {}) if sig else {}
+    # held-out check: the truth against the best wrong candidate of the same parameter count
+    wrong = next((r for r in d["ranking"] if truth and r["name"] != case.label
+                  and r["n_parameters"] == truth["n_parameters"] and r.get("held_out")), None)
+    return {
+        "label": case.label, "answer": answer,
+        "rank": names.index(case.label) + 1 if case.label in names else None,
+        "top3": names[:3], "explained": truth["explained"] if truth else None,
+        "delta_bic": truth["delta_bic"] if truth else None,
+        "worst_mhd_mm": worst,
+        "verified_worst_mhd_mm": max(ver["mhd_mm"].values()) if ver.get("mhd_mm") else None,
+        "held_out_truth": truth.get("held_out") if truth else None,
+        "held_out_wrong": {"name": wrong["name"], **wrong["held_out"]} if wrong else None,
+        "failed": [f["name"] for f in d["failed"]], "n_evaluations": d["n_evaluations"],
+        "budget": d["budget"],
+        "run_s": t_run, "diagnose_s": wall,
+        "diagnose_cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system),
+        "verdict": d["verdict"],
+    }
+
+
+def summarise(rows: list[dict]) -> dict:
+    labels = sorted({r["label"] for r in rows} | {r["answer"] for r in rows})
+    confusion = {t: {a: 0 for a in labels} for t in labels}
+    for r in rows:
+        confusion[r["label"]][r["answer"]] += 1
+    real = [r for r in rows if r["label"] != "none"]
+    nones = [r for r in rows if r["label"] == "none"]
+    return {
+        "top1": sum(r["answer"] == r["label"] for r in real) / max(len(real), 1),
+        "top3": sum(r["rank"] is not None and r["rank"] <= 3 for r in real) / max(len(real), 1),
+        "false_alarms_on_none": sum(r["answer"] != "none" for r in nones) / max(len(nones), 1)
+        if nones else None,
+        "halved": [r["label"] for r in real if r["verified_worst_mhd_mm"] is not None
+                   and r["verified_worst_mhd_mm"] <= 0.5 * r["worst_mhd_mm"]],
+        "confusion": confusion,
+    }
+
+
+def _fmt(v, spec: str) -> str:
+    return format(v, spec) if v is not None else "-"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cells", type=int, nargs=4, default=(8, 6, 3, 2))
+    ap.add_argument("--stress-free", default="none", choices=("none", "inverse"))
+    ap.add_argument("--cases", default=",".join(MOUND_CASES))
+    ap.add_argument("--workers", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("/tmp/diagnosis_matrix"))
+    ap.add_argument("--results", type=Path, default=_HERE / "results" / "diagnosis_matrix.json")
+    args = ap.parse_args(argv)
+    names = [n for n in args.cases.split(",") if n]
+    unknown = sorted(set(names) - set(MOUND_CASES))
+    if unknown:
+        ap.error(f"unknown case(s) {unknown}; known: {sorted(MOUND_CASES)}")
+    rows = []
+    print(f"{'truth':<32} {'answer':<32} {'rank':>4} {'expl':>5} {'dBIC':>7} {'MHD':>6} "
+          f"{'->':>6} {'diag s':>7}")
+    for case in mound_suite(args.out, names, cells=args.cells, stress_free=args.stress_free):
+        r = diagnose_case(case, args.out, workers=args.workers)
+        rows.append(r)
+        print(f"{r['label']:<32} {r['answer']:<32} {_fmt(r['rank'], '4d'):>4} "
+              f"{_fmt(r['explained'], '5.2f'):>5} {_fmt(r['delta_bic'], '7.1f'):>7} "
+              f"{r['worst_mhd_mm']:6.2f} {_fmt(r['verified_worst_mhd_mm'], '6.2f'):>6} "
+              f"{r['diagnose_s']:7.1f}", flush=True)
+    summary = summarise(rows)
+    print(f"top-1 {summary['top1']:.2f}, top-3 {summary['top3']:.2f}, false alarms on none "
+          f"{summary['false_alarms_on_none']}, verified re-fit halves the worst MHD: "
+          f"{summary['halved']}")
+    n_tets = 6 * args.cells[0] * args.cells[1] * (args.cells[2] + args.cells[3])
+    write_json(args.results, {
+        "suite": "mounds", "cells": list(args.cells), "n_tets": n_tets,
+        "stress_free": args.stress_free, "workers": args.workers, "rows": rows,
+        "summary": summary, "machine": platform.node(), "cpus": os.cpu_count()})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
