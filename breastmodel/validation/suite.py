@@ -193,7 +193,8 @@ def family_maker(*, size: str = "small", febio: str | None = None,
     """``make(name, folder)`` for :func:`run_suite`: the subject of seed
     ``int(name.rsplit('-', 1)[-1])`` drawn from the phantom family
     (:func:`breastmodel.phantom.family.draw_spec` with ``overrides``), its truth computed by
-    FEBio; a subject made before (marker ``folder/.made``) is reused."""
+    FEBio. A subject made before is reused only when its marker ``folder/.made`` holds the
+    same spec (a changed family draws another subject, which is made anew)."""
     from breastmodel.phantom.family import draw_spec, make_subject
     from breastmodel.phantom.writer import truth_folder
 
@@ -202,10 +203,12 @@ def family_maker(*, size: str = "small", febio: str | None = None,
         spec = draw_spec(seed, size=size, **overrides)
         done = Path(folder) / ".made"
         t0 = time.perf_counter()
-        if not done.is_file():
+        made = read_json(done) if done.is_file() else None
+        if made != spec.to_dict():
+            done.unlink(missing_ok=True)
             make_subject(spec, folder, truth_solver="febio", febio=febio, cache_dir=cache,
                          progress=False)
-            done.write_text(json.dumps({"seed": seed}))
+            done.write_text(json.dumps(spec.to_dict()))
         return Path(folder), truth_folder(folder), {
             "seed": seed, "label": spec_label(spec), "spec": spec.to_dict(),
             "make_s": round(time.perf_counter() - t0, 2)}

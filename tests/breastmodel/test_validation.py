@@ -100,3 +100,19 @@ def test_figures_from_an_arm_result():
     assert np.isclose(f["breast_E_rel_error"], 0.35)
     assert f["mhd_calibrated_max_mm"] == 2.78 and f["mhd_held_out_max_mm"] == 4.14
     assert f["completed"] == 1.0
+
+
+def test_family_maker_remakes_a_subject_whose_spec_changed(tmp_path, monkeypatch):
+    import breastmodel.phantom.family as family
+    from breastmodel.validation import family_maker
+
+    made = []
+    monkeypatch.setattr(family, "make_subject",
+                        lambda spec, folder, **kw: made.append(spec.to_dict()))
+    folder = tmp_path / "small-004"
+    folder.mkdir()
+    family_maker(size="small")("small-004", folder)
+    family_maker(size="small")("small-004", folder)  # same spec: reused
+    assert len(made) == 1
+    _, _, info = family_maker(size="small", snr=33.0)("small-004", folder)  # another spec
+    assert len(made) == 2 and made[1]["snr"] == 33.0 and info["spec"]["snr"] == 33.0
