@@ -25,23 +25,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 
-def model_for(mesh_path: Path, law: str, formulation: str):
-    from mechanics.mesh import Mesh
-    from mechanics.model import build_model
-
-    z = np.load(mesh_path)
-    mesh = Mesh(z["nodes"], z["tets"], np.ones(len(z["tets"])), node_sets={"base": z["base"]})
-    mat = {"name": "neo_hookean", "E": 1.0, "nu": 0.49}
-    if law == "gent":
-        mat = {"name": "gent", "E": 1.0, "nu": 0.49, "Jm": 5.0}
-    model = build_model(mesh, {1: mat}, {"gravity": {"direction": (0, 0, -1), "g": 9.81,
-                                                     "density": 1000.0},
-                                         "fixed": {"node_set": "base"}}, formulation=formulation)
-    return model, int(z["tip"])
-
-
 def main(argv=None) -> int:
     from breastmodel.febio import shared_path, solve_with_febio
+    from breastmodel.reference import hemisphere_model
     from mechanics.solver import SolverOptions, solve
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -59,7 +45,7 @@ def main(argv=None) -> int:
     rows = json.loads(args.out.read_text()) if args.out.exists() else []
     for law in args.laws.split(","):
         for form in ("anp", "standard"):
-            model, tip = model_for(args.mesh, law, form)
+            model, tip = hemisphere_model(args.mesh, law, formulation=form)
             t0 = time.perf_counter()
             r = solve(model, options=SolverOptions(tol=1e-10))
             row = {"code": "ours", "law": law, "element": form, "mesh": args.mesh.name,
@@ -69,7 +55,7 @@ def main(argv=None) -> int:
             rows.append(row)
         ours = rows[-2]["tip_mm"]
         for element in args.elements.split(","):
-            model, tip = model_for(args.mesh, law, "anp")
+            model, tip = hemisphere_model(args.mesh, law, formulation="anp")
             with tempfile.TemporaryDirectory() as work:
                 run = solve_with_febio(model, work_dir=work, element=element,
                                        threads=args.threads, solver=args.solver,

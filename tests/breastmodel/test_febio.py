@@ -15,6 +15,7 @@ from breastmodel.febio import (
     shared_path,
     solve_with_febio,
 )
+from breastmodel.reference import hemisphere_model
 from mechanics.effects import Effect, register_effect
 from mechanics.effects.base import EFFECTS
 from mechanics.febio import FebioUnsupported, feb_text
@@ -92,18 +93,6 @@ def test_febio_failure_names_the_file_and_quotes_febio(febio, tmp_path):
         run_febio(bad, work_dir=tmp_path, febio=febio, timeout_s=60)
 
 
-def hemisphere_model(law: str, formulation: str):
-    z = np.load(HEMI)
-    mesh = Mesh(z["nodes"], z["tets"], np.ones(len(z["tets"])), node_sets={"base": z["base"]})
-    mat = {"name": "neo_hookean", "E": 1.0, "nu": 0.49}
-    if law == "gent":
-        mat = {"name": "gent", "E": 1.0, "nu": 0.49, "Jm": 5.0}
-    model = build_model(mesh, {1: mat}, {"gravity": {"direction": (0, 0, -1), "g": 9.81,
-                                                     "density": 1000.0},
-                                         "fixed": {"node_set": "base"}}, formulation=formulation)
-    return model, int(z["tip"])
-
-
 @pytest.mark.parametrize("law", ["neo_hookean", "gent"])
 def test_hemisphere_tet4_matches_our_standard_tets(febio, tmp_path, law):
     """The same discrete problem in both codes (1-point linear tets, the same energy through
@@ -112,7 +101,7 @@ def test_hemisphere_tet4_matches_our_standard_tets(febio, tmp_path, law):
     Measured: max difference 1.1e-10 mm (neo-Hookean) on a 11.55 mm tip displacement."""
     if not os.path.exists(HEMI):
         pytest.skip(f"hemisphere reference mesh not found at {HEMI}")
-    model, tip = hemisphere_model(law, "standard")
+    model, tip = hemisphere_model(HEMI, law, formulation="standard")
     ours = solve(model, options=SolverOptions(tol=1e-10))
     t0 = time.perf_counter()
     run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet4", steps=2,
@@ -312,7 +301,7 @@ def test_hemisphere_febio_locking_free_elements_agree(febio, tmp_path):
     About 15 minutes on one thread: run with -m slow."""
     if not os.path.exists(HEMI):
         pytest.skip(f"hemisphere reference mesh not found at {HEMI}")
-    model, tip = hemisphere_model("neo_hookean", "anp")
+    model, tip = hemisphere_model(HEMI, "neo_hookean", formulation="anp")
     tips = {}
     for element, steps in (("tet10", 2), ("ut4", 10)):
         run = solve_with_febio(model, work_dir=tmp_path / element, febio=febio,
