@@ -49,7 +49,7 @@ def centre_index(img: sitk.Image, view: str, labels: sitk.Image | None = None) -
     axis = ORIENTATIONS[view][0]
     if labels is None:
         return int(lps(img).GetSize()[::-1][axis] // 2)
-    a = sitk.GetArrayViewFromImage(lps(labels))
+    a = sitk.GetArrayFromImage(lps(labels))  # a copy: a view would outlive the temporary image
     other = tuple(i for i in range(3) if i != axis)
     for mask in (np.isin(a, (1, 3)), a > 0):
         count = mask.sum(axis=other)

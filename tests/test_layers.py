@@ -29,7 +29,7 @@ MECHANICS_THIRD_PARTY = {"numpy", "scipy", "threadpoolctl", "pypardiso"}
 def imports(path: Path, pkg: str | None = None) -> list[tuple[int, str]]:
     """(line, dotted module) of every import in a file; relative imports are resolved
     against ``pkg`` (default: the file's package under the repository root)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
     if pkg is None:
         pkg = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
     out = []
