@@ -23,6 +23,13 @@ def _abbr(position: str) -> str:
     return "".join(p if p.isdigit() else p[0] for p in parts if p)
 
 
+def _short_error(error: str | None, width: int = 110) -> str:
+    """An arm's error without the file path a stage names (the JSON keeps it whole)."""
+    import re
+
+    return re.sub(r" \[[^\]]*\]", "", error or "")[:width]
+
+
 def summary_rows(res: Mapping[str, Any]) -> dict[str, str]:
     """One table row per subject and arm: the figures, per position where they differ."""
     rows = []
@@ -49,7 +56,7 @@ def summary_rows(res: Mapping[str, Any]) -> dict[str, str]:
             "MHD held mm": " ".join(f"{_abbr(p)} {mhd[p]:.2f}" for p in a.get("held_out", [])
                                     if mhd.get(p) is not None) or "-",
             "time s": " ".join(f"{k[:4]} {v:.0f}" for k, v in times.items()),
-            "error": (a.get("error") or "")[:90],
+            "error": _short_error(a.get("error")),
         })
     if res.get("error"):
         rows.append({"subject": res["subject"], "kind": "", "arm": "-",
