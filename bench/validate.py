@@ -39,7 +39,10 @@ def main(argv=None) -> int:
                     "../shared/febio/febio4)")
     ap.add_argument("--arms", default="pipeline,truth_labels")
     ap.add_argument("--mesh-size", type=float, default=8.0, help="fitted model's tet edge, mm")
-    ap.add_argument("--force", action="store_true", help="redo finished subjects")
+    ap.add_argument("--force", action="store_true",
+                    help="re-evaluate finished subjects (the pipeline's stage cache under "
+                         "WORK/runs is keyed by inputs and settings, not by code: delete it "
+                         "to rerun stages after a code change)")
     ap.add_argument("--markdown", action="store_true", help="print the table as markdown")
     ap.add_argument("--progress", action="store_true")
     args = ap.parse_args(argv)
