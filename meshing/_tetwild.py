@@ -3,6 +3,12 @@
 Only this module imports pytetwild. fTetWild keeps every input triangle inside an envelope
 of half-width ``epsilon`` and returns its whole background mesh when filtering is disabled,
 so that the caller decides which tets are inside which region.
+
+fTetWild is not deterministic, even on one thread: it inserts the input triangles in an order
+shuffled by a generator seeded from ``std::random_device`` (``sort_input_faces`` in its
+``TriangleInsertion.cpp``; the ``not_sort_input`` switch is not exposed by pytetwild 0.4.2).
+Two meshings of one input differ in their tets; callers cache a mesh by its inputs so that a
+subject is meshed once, and tests bound properties, never exact counts.
 """
 
 from __future__ import annotations

@@ -94,13 +94,20 @@ def test_skin_and_fixed_sets(boxes):
     n, c = triangle_normals(x, skin), x[skin].mean(1)
     # outward: away from the breast tet each face bounds (every one); mostly away from the
     # box centre too (the rim's staircase has faces in concave corners: up to 1 % of them
-    # over 11 runs); and all on the breast box (y < interface plane)
+    # over 11 runs); and on the breast box: the interface patch stops gap = max(1.5 voxel,
+    # 0.2 H) = 1.5 mm short of the skin (meshing.volume), so in that rim band tets are split by
+    # centroid, not along the plane, and skin faces may cross it by up to the gap plus the
+    # envelope (0.1 H); measured in 6 meshings: centroids up to 0.69 mm past the plane, at most
+    # one face (<= 0.17 % of the skin area)
     bf, owner, _, _ = tet_faces(mesh.tets)
     tet_of = {tuple(sorted(f)): t for f, t in zip(bf.tolist(), owner.tolist(), strict=True)}
     inside = x[mesh.tets[[tet_of[tuple(sorted(f))] for f in skin.tolist()]]].mean(axis=1)
     assert (np.einsum("ij,ij->i", n, c - inside) > 0).all()
     assert (np.einsum("ij,ij->i", n, c) > 0).mean() > 0.98
-    assert c[:, 1].max() < -SIZE[1] / 2 + SPLIT + 0.5
+    plane = -SIZE[1] / 2 + SPLIT
+    assert c[:, 1].max() < plane + 1.5 + 0.1 * H
+    beyond = c[:, 1] > plane + 0.1 * H
+    assert triangle_areas(x, skin[beyond]).sum() < 0.01 * triangle_areas(x, skin).sum()
     # the front (anterior) face is 60 x 50 mm less the rounded rim (normal tilted > 25 deg),
     # about a 1 mm strip along its 220 mm perimeter at this element size
     front = n[:, 1] < -0.9
