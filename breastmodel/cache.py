@@ -12,6 +12,10 @@ Layout::
 
     root/<name>/<key>/            finished stage (its files + stage.json)
     root/<name>/.tmp-<key>-<host>-<pid>-<random>/   a stage being computed (or left by a kill)
+    root/<name>/failed-<key>/     what the last failed run of that stage wrote, for inspection
+
+A stage that fails leaves its files under ``failed-<key>`` (never read back by the cache) and
+its error names that folder, not the temporary one.
 """
 
 from __future__ import annotations
@@ -189,7 +193,9 @@ class Cache:
     def staging(self, name: str, key: str, *,
                 config: Mapping[str, Any] | None = None) -> Iterator[Path]:
         """Context manager: yields an empty temporary folder; on normal exit writes
-        ``stage.json`` and renames the folder to :meth:`path`; on an exception removes it.
+        ``stage.json`` and renames the folder to :meth:`path`; on an exception moves it to
+        ``failed-<key>`` beside it and rewrites the exception's message (and a ``path``
+        attribute) to name that folder.
 
         Check :meth:`done` first; a stage that finished meanwhile (a concurrent run) is kept
         and this run's copy is discarded.
@@ -215,6 +221,10 @@ class Cache:
                 if not (final / "stage.json").is_file():
                     raise
                 # another run finished the same stage first; its result is equivalent
+            shutil.rmtree(final.parent / f"failed-{key}", ignore_errors=True)
+        except BaseException as exc:
+            _keep_failed(tmp, final.parent / f"failed-{key}", exc)
+            raise
         finally:
             if tmp.exists():
                 shutil.rmtree(tmp, ignore_errors=True)
@@ -256,6 +266,22 @@ class Cache:
                 continue
             if not _pid_alive(int(parts[1])):
                 shutil.rmtree(p, ignore_errors=True)
+
+
+def _keep_failed(tmp: Path, kept: Path, exc: BaseException) -> None:
+    """Move a failed stage's temporary folder to ``kept`` and point ``exc`` at it."""
+    if not tmp.exists():
+        return
+    shutil.rmtree(kept, ignore_errors=True)
+    try:
+        os.rename(tmp, kept)
+    except OSError:
+        return
+    old, new = str(tmp), str(kept)
+    exc.args = tuple(a.replace(old, new) if isinstance(a, str) else a for a in exc.args)
+    path = getattr(exc, "path", None)
+    if isinstance(path, str | Path) and old in str(path):
+        exc.path = type(path)(str(path).replace(old, new))
 
 
 def _pid_alive(pid: int) -> bool:

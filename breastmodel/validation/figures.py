@@ -51,8 +51,6 @@ def chest_wall_points(truth_dir: Path, reference: str, *, every: int = 97) -> np
 
 
 def registration_figures(stages, out: Path, truth_dir: Path, reference: str) -> dict[str, dict]:
-    import SimpleITK as sitk
-
     from registration.transforms import read_transform, rigid_matrix, transform_points
 
     reg = next((s for s in stages if s["name"] == "register" and s["status"] != "failed"),
@@ -62,11 +60,11 @@ def registration_figures(stages, out: Path, truth_dir: Path, reference: str) -> 
     d = _stage_dir(out, reg)
     report = read_json(d / "registration.json") or {}
     pts = chest_wall_points(truth_dir, reference)
-    m_ref = sitk.ReadTransform(str(truth_dir / f"{reference}_motion.tfm"))
+    m_ref = read_transform(truth_dir / f"{reference}_motion.tfm")
     res = {}
     for pos, entry in (report.get("positions") or {}).items():
         est = read_transform(d / f"{pos}.tfm")
-        m_pos = sitk.ReadTransform(str(truth_dir / f"{pos}_motion.tfm"))
+        m_pos = read_transform(truth_dir / f"{pos}_motion.tfm")
         truth_pts = transform_points(m_pos, transform_points(m_ref.GetInverse(), pts))
         tre = np.linalg.norm(transform_points(est, pts) - truth_pts, axis=1)
         r_est, _ = rigid_matrix(est)

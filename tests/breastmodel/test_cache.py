@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from breastmodel.cache import Cache, StageKey, content_hash, stage_key
+from breastmodel.errors import StageError
 
 
 def _pipeline(cache: Cache, image: Path, cfg: dict, calls: list) -> dict:
@@ -96,22 +97,28 @@ def test_deleted_stage_is_redone_alone(tmp_path, image):
     assert calls == ["B"]
 
 
-def test_exception_inside_stage_leaves_nothing_and_rerun_completes(tmp_path):
+def test_exception_inside_stage_leaves_no_result_and_rerun_completes(tmp_path):
     cache = Cache(tmp_path / "cache")
     key = stage_key("solve", {"E": 0.3})
 
     def crash(out: Path):
         (out / "half.npy").write_bytes(b"partial")
-        raise RuntimeError("Newton diverged")
+        raise StageError("solve", "Newton diverged", path=out / "solve.json")
 
-    with pytest.raises(RuntimeError, match="Newton diverged"):
+    with pytest.raises(StageError, match="Newton diverged") as info:
         cache.run("solve", key, crash)
     assert not cache.done("solve", key)
     assert not cache.path("solve", key).exists()
-    assert list((tmp_path / "cache" / "solve").iterdir()) == []  # no temporary left
+    # no temporary left; what the stage wrote is kept for inspection, and the error names it
+    failed = tmp_path / "cache" / "solve" / f"failed-{key}"
+    assert list((tmp_path / "cache" / "solve").iterdir()) == [failed]
+    assert (failed / "half.npy").read_bytes() == b"partial"
+    assert str(failed / "solve.json") in str(info.value) and ".tmp-" not in str(info.value)
+    assert info.value.path == failed / "solve.json"
     out = cache.run("solve", key, lambda d: (d / "u.txt").write_text("ok"))
     assert (out / "u.txt").read_text() == "ok" and cache.done("solve", key)
     assert not (out / "half.npy").exists()
+    assert not failed.exists()  # a success clears the failed run's files
 
 
 def test_killed_process_leaves_no_result_and_rerun_cleans_up(tmp_path):
