@@ -245,8 +245,8 @@ def mesh_labels(
     size_mm : float
         Target tet edge length at the breast mounds' surfaces, mm (see ``coarse``).
     seed : int, optional
-        Unused by fTetWild (its output varies with thread scheduling); kept for the
-        pipeline's uniform signature and recorded nowhere else.
+        Unused: fTetWild runs with a fixed seed (see ``meshing._tetwild``), so one label map
+        gives one mesh; kept for the pipeline's uniform signature.
     progress : bool
         Log the stages at INFO level.
     keep_gland : bool

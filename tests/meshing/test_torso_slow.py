@@ -27,7 +27,7 @@ def _torso_labels(tmp_path):
 def test_torso_mesh_meets_the_size_and_quality_targets(tmp_path):
     mesh = mesh_labels(_torso_labels(tmp_path), size_mm=8.0, threads=2)
     q = report(mesh)
-    # paper: 18,453 tets at 7-10 mm; issue: about 15-25k (fTetWild varies run to run)
+    # paper: 18,453 tets at 7-10 mm; issue: about 15-25k
     assert 15_000 <= q["n_tets"] <= 25_000
     assert q["n_inverted"] == 0
     eq = element_quality(mesh.nodes, mesh.tets)
