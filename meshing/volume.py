@@ -180,15 +180,37 @@ def _surfaces(tets, region):
 
 def _improve(nodes, tets, region, vu, fu, vb, fb, *, epsilon: float, passes: int = 6):
     """Repeat :func:`_improve_once` while a tet is flatter than skewness 0.9 (a collapse
-    frees nodes that the next relocation can move)."""
+    frees nodes that the next relocation can move); flat tets still left where the
+    interface meets the skin are carved out (:func:`_carve_caps`)."""
     for _ in range(passes):
         nodes, tets, region = _improve_once(nodes, tets, region, vu, fu, vb, fb, epsilon)
         skew = element_quality(nodes, tets)["skewness"]
         if skew.max() <= 0.9:
             break
     else:
+        nodes, tets, region = _carve_caps(nodes, tets, region, skew > 0.9)
+        skew = element_quality(nodes, tets)["skewness"]
+    if skew.max() > 0.9:
         log.warning("meshing: %d tets keep a skewness above 0.9 (worst %.3f)",
                     int((skew > 0.9).sum()), float(skew.max()))
+    return nodes, tets, region
+
+
+def _carve_caps(nodes, tets, region, flat):
+    """Remove flat tets that no node move mends and that can go without harm: those with
+    exactly one face on the outer boundary and the opposite node inside (removing one
+    leaves a manifold boundary). They sit where the interface meets the skin, all four
+    nodes on the interface and three on the skin, where every node is pinned."""
+    bf, owner, _, _ = tet_faces(tets)
+    n_bnd = np.bincount(owner, minlength=len(tets))
+    on_bnd = np.zeros(len(nodes), bool)
+    on_bnd[bf.ravel()] = True
+    carve = flat & (n_bnd == 1) & (on_bnd[tets].sum(1) == 3)
+    if not carve.any():
+        return nodes, tets, region
+    log.debug("meshing: carved %d flat tets at the skin", int(carve.sum()))
+    tets, region = tets[~carve], region[~carve]
+    nodes, tets = _drop_unused(nodes, tets)
     return nodes, tets, region
 
 
