@@ -26,7 +26,7 @@ import numpy as np
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["fit_parameters", "fit_work_dir", "grid_points", "least_squares",
-           "lsq_uncertainty", "optimise", "sensitivity"]
+           "lsq_uncertainty", "identifiability", "optimise", "sensitivity"]
 
 _PENALTY_MM = 1e3  # objective of a failed evaluation as the optimiser sees it
 _LSQ_STEP = 0.05  # log-parameter step of the least-squares Jacobian (5 %)
@@ -224,10 +224,11 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
                         x_scale=1.0, xtol=1e-4, ftol=1e-4, max_nfev=budget)
         stop = str(sol.message)
         uncertainty = lsq_uncertainty(sol.jac, sol.fun, np.exp(sol.x + shift), names)
+        ident = identifiability(sol.jac, names)
     except _BudgetSpent:
-        pass
+        ident = None
     return {**_summary(ev.history, "least_squares"), "termination": stop,
-            "uncertainty": uncertainty}
+            "uncertainty": uncertainty, "identifiability": ident}
 
 
 def lsq_uncertainty(J: np.ndarray, r: np.ndarray, p: np.ndarray,
@@ -260,6 +261,48 @@ def lsq_uncertainty(J: np.ndarray, r: np.ndarray, p: np.ndarray,
         return {}
     sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     return {k: float(v) for k, v in zip(names, np.asarray(p, float) * sd)}
+
+
+def identifiability(J: np.ndarray, names: list[str], *, separable: float = 0.95,
+                    seen: float = 1e-6) -> dict:
+    """Which fitted parameters the data determine, from the Jacobian at the optimum.
+
+    The correlation of two parameters' estimates (from (J^T J)^-1, in log space) near +-1
+    means the data move them together: their ratio is fitted, not each one. A column that is
+    tiny next to the largest means the data hardly see that parameter.
+
+    Parameters
+    ----------
+    J : (m, n) Jacobian of the residuals (mm) with respect to ln p
+    names : the n parameter paths
+    separable : |correlation| at or above which a pair is reported as not separable
+    seen : column norm, relative to the largest, below which a parameter is unseen
+
+    Returns
+    -------
+    dict
+        ``correlation`` ({"a | b": r} for every pair), ``not_separable`` ([a, b, r] for
+        pairs with |r| >= ``separable``), ``unseen`` (names), ``condition`` (of J; None
+        when J^T J is singular).
+    """
+    J = np.asarray(J, float)
+    norms = np.linalg.norm(J, axis=0)
+    unseen = [k for k, c in zip(names, norms) if c <= seen * max(norms.max(initial=0.0), 1e-300)]
+    out = {"correlation": {}, "not_separable": [], "unseen": unseen, "condition": None}
+    sv = np.linalg.svd(J, compute_uv=False) if J.size else np.zeros(0)
+    if len(sv) < len(names) or len(sv) == 0 or sv.min() <= 1e-12 * sv.max():
+        return out
+    cov = np.linalg.inv(J.T @ J)
+    d = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(d, d)
+    out["condition"] = float(sv.max() / sv.min())
+    for i in range(len(names)):
+        for j in range(i + 1, len(names)):
+            r = float(corr[i, j])
+            out["correlation"][f"{names[i]} | {names[j]}"] = r
+            if abs(r) >= separable:
+                out["not_separable"].append([names[i], names[j], r])
+    return out
 
 
 def _summary(history: list[dict], method: str) -> dict:

@@ -220,6 +220,23 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
     return parts
 
 
+def _identifiability_notes(ident: dict | None) -> list[str]:
+    """Sentences on what the data cannot determine (see ``pipeline.fit.identifiability``)."""
+    if not ident:
+        return []
+    notes = [f"The data do not separate {html.escape(a)} and {html.escape(b)} (correlation "
+             f"{r:+.2f}): their combination is fitted, not each one."
+             for a, b, r in ident.get("not_separable", [])]
+    notes += [f"The data hardly see {html.escape(k)}: its value is the starting point."
+              for k in ident.get("unseen", [])]
+    if ident.get("condition") is not None:
+        notes.append(f"Condition number of the fit's Jacobian: {ident['condition']:.3g}.")
+    if not ident.get("not_separable") and not ident.get("unseen"):
+        notes.insert(0, "Every fitted parameter is determined by the data (no pair of "
+                        "estimates correlated beyond 0.95).")
+    return [f"<p class='ident'>{n}</p>" for n in notes]
+
+
 def _status_rows(metrics: Mapping[str, Any], fit_info: Mapping[str, Any] | None,
                  sf: Mapping[str, Any]) -> list[list]:
     rows = [["stress-free geometry", sf.get("method"),
@@ -301,6 +318,7 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
     parts += ["<h2 id='parameters'>Parameters</h2>",
               _table(["parameter", "value", "unit", "fitted or fixed", "search range",
                       "uncertainty (1 sd)"], prow)]
+    parts += _identifiability_notes((fit_info or {}).get("identifiability"))
     parts += ["<h2 id='distances'>Skin surface distances (mm)</h2>",
               _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
                      [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),

@@ -206,3 +206,26 @@ def test_least_squares_uncertainty_matches_the_linear_model(monkeypatch, tmp_pat
                                        ("effects.skin.E", S_OPT)]):
         assert unc[name] == pytest.approx(p_hat[k] * sd_ln[k], rel=0.02)
         assert abs(res["best"]["params"][name] - truth) < 3 * unc[name]
+
+
+def test_identifiability_names_the_pairs_the_data_cannot_separate():
+    rng = np.random.default_rng(2)
+    a, c = rng.normal(size=200), rng.normal(size=200)
+    names = ["materials.breast_left.E", "effects.skin.E", "effects.fascia.E"]
+    # the first two columns almost equal: the residual sees their sum, not each one
+    J = np.column_stack([a, a + 0.01 * rng.normal(size=200), c])
+    ident = fitmod.identifiability(J, names)
+    cov = np.linalg.inv(J.T @ J)
+    r01 = cov[0, 1] / math.sqrt(cov[0, 0] * cov[1, 1])
+    assert ident["correlation"]["materials.breast_left.E | effects.skin.E"] == \
+        pytest.approx(r01, rel=1e-9)
+    assert r01 < -0.95  # equal columns: estimates anti-correlated (their sum is fitted)
+    assert ident["not_separable"] == [[names[0], names[1], pytest.approx(r01, rel=1e-9)]]
+    assert ident["unseen"] == []
+    assert ident["condition"] > 100
+    # independent columns: every parameter determined
+    ok = fitmod.identifiability(np.column_stack([a, c]), names[:2])
+    assert ok["not_separable"] == [] and ok["condition"] < 2
+    # a column of zeros: the data do not see that parameter, J^T J is singular
+    blind = fitmod.identifiability(np.column_stack([a, np.zeros(200)]), names[:2])
+    assert blind["unseen"] == [names[1]] and blind["condition"] is None

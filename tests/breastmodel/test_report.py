@@ -45,7 +45,9 @@ def test_report_shows_fit_status_units_uncertainty_and_one_scale(tmp_path):
     fit = {"method": "least_squares", "termination": "xtol reached", "n_simulations": 12,
            "n_failed": 1, "best": {"params": {"materials.breast_left.E": 0.9},
                                    "objective": 1.25},
-           "uncertainty": {"materials.breast_left.E": 0.0421}}
+           "uncertainty": {"materials.breast_left.E": 0.0421},
+           "identifiability": {"not_separable": [["materials.breast_left.E", "effects.skin.E",
+                                                  -0.97]], "unseen": [], "condition": 850.0}}
     config = {"fit": {"parameters": {"materials.breast_left.E": {"min": 0.1, "max": 4.0}}}}
     pictures = {"prone": (*_skin(0), np.array([-3.0, 1, 2, 3]), _skin(1)),
                 "supine": (*_skin(0), np.array([0.1, 0.2, -0.1, 0.0]), _skin(0))}
@@ -64,5 +66,7 @@ def test_report_shows_fit_status_units_uncertainty_and_one_scale(tmp_path):
     assert rows["predict supine"][1].startswith("NOT converged")
     assert rows["predict supine"][2] == "Newton diverged"
     assert rows["fit"] == ["least_squares", "xtol reached", "12 simulations, 1 failed"]
+    assert ("The data do not separate materials.breast_left.E and effects.skin.E "
+            "(correlation -0.97)") in html
     lim = common_error_limit([p[2] for p in pictures.values()])
     assert f"&plusmn;{lim:.2f} mm" in html
