@@ -53,7 +53,7 @@ DEFAULTS: dict[str, Any] = {
     "solver": {"tol": 1e-6, "max_newton": 25, "initial_steps": 2, "max_cutbacks": 12},
     "stress_free": {"method": "inverse", "position": None, "lam": 0.5, "tol_mm": 0.05,
                     "max_iter": 30, "anderson": 5, "min_improvement_mm": 0.01},
-    "evaluate": {"positions": None},
+    "evaluate": {"positions": None, "refinement": False},
     "fit": {"enabled": False, "calibrate": None, "evaluate": None, "method": "optimizer",
             "budget": 100, "parameters": {}, "n_workers": 1, "scheduler": None,
             "sensitivity": True},
@@ -66,7 +66,7 @@ _TABLE_KEYS = {
     "solver": _SOLVER_KEYS,
     "stress_free": {"method", "position", "lam", "tol_mm", "max_iter", "anderson",
                     "min_improvement_mm"},
-    "evaluate": {"positions"},
+    "evaluate": {"positions", "refinement"},
     "fit": {"enabled", "calibrate", "evaluate", "method", "budget", "parameters", "n_workers",
             "scheduler", "sensitivity"},
 }

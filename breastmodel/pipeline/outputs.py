@@ -315,7 +315,8 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
                   subject_id: str, register_dir: Path | None = None,
                   segment_dirs: Mapping[str, Path] | None = None,
                   volumes: Mapping[str, Path] | None = None,
-                  config: Mapping[str, Any] | None = None) -> dict:
+                  config: Mapping[str, Any] | None = None,
+                  refinement: Mapping[str, Any] | None = None) -> dict:
     """Assemble the run's outputs from finished stages (see the module notes).
 
     Parameters
@@ -331,6 +332,7 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
     segment_dirs : position -> segment stage folder (label maps on each position's grid)
     volumes : position -> the subject's input volume (segmentation QA in the report)
     config : the resolved run config (shown in the report)
+    refinement : the mesh-refinement check (``metrics.json`` and the report), or None
 
     Returns
     -------
@@ -379,6 +381,8 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
         images["input_volumes"] = dict(volumes or {})
         images["reference"] = problem.reference
         images["out"] = out
+    if refinement is not None:
+        metrics["refinement"] = dict(refinement)
     metrics["files"] = {"paraview": "run.vtm", "positions": blocks, "febio": febio,
                         **({k: images[k] for k in ("volumes", "labels", "transforms",
                                                    "colour_tables")} if images else {})}

@@ -220,6 +220,24 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
     return parts
 
 
+def _refinement_section(ref: Mapping[str, Any] | None) -> list[str]:
+    """The mesh-refinement check (``[evaluate] refinement = true``)."""
+    if not ref:
+        return []
+    if "skipped" in ref:
+        return ["<h2 id='refinement'>Mesh refinement check</h2>",
+                f"<p>Not run: {html.escape(str(ref['skipped']))}.</p>"]
+    h, hf = ref["size_mm"], ref["fine_size_mm"]
+    worst = max((abs(r["change_mm"]) for r in ref["positions"].values()), default=0.0)
+    return ["<h2 id='refinement'>Mesh refinement check</h2>",
+            f"<p>The prediction at the same parameters on a mesh of half the edge length "
+            f"({h:g} mm, {ref['n_tets']} tets, against {hf:g} mm, {ref['fine_n_tets']} tets): "
+            f"the MHD changes by up to {worst:.2f} mm, what the default mesh size costs.</p>",
+            _table(["position", f"MHD at {h:g} mm", f"MHD at {hf:g} mm", "change (mm)"],
+                   [[p, r["mhd_mm"], r["fine_mhd_mm"], r["change_mm"]]
+                    for p, r in ref["positions"].items()])]
+
+
 def _identifiability_notes(ident: dict | None) -> list[str]:
     """Sentences on what the data cannot determine (see ``pipeline.fit.identifiability``)."""
     if not ident:
@@ -323,6 +341,7 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
               _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
                      [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),
                        m.get("p95_mm"), m.get("converged")] for p, m in pos.items()])]
+    parts += _refinement_section(metrics.get("refinement"))
     rows = [[p, r, s.get("n"), s.get("mean_mm"), s.get("mean_signed_mm"), s.get("rmse_mm"),
              s.get("p95_mm"), s.get("max_mm")]
             for p, m in pos.items() for r, s in m.get("regions", {}).items()]

@@ -49,6 +49,7 @@ class Prepared:
     problem_key: str
     register_dir: Path | None = None
     segment_dirs: Mapping[str, Path] | None = None
+    problem_inputs: tuple = ()  # what the problem stage was keyed on (registration, landmarks)
 
 
 class _Runner:
@@ -336,7 +337,8 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     prob_dir, prob_key = R.stage("problem", {"mesh": cfg["mesh"], "surface": cfg["surface"]},
                                  [reg_key, *lm], _problem(subject, reg_dir, cfg),
                                  label="mesh + measured skins")
-    return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs)
+    return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs,
+                    (reg_key, *lm))
 
 
 def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
@@ -391,6 +393,47 @@ def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     return _model_stages(prep, cfg, out, t0)
 
 
+def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str, Any],
+                      pred_dirs: Mapping[str, Path]) -> dict:
+    """The prediction at the model's (fitted) parameters again on a mesh of half the edge
+    length: the change of each position's MHD bounds what the mesh size costs.
+
+    Returns
+    -------
+    dict
+        ``size_mm``, ``fine_size_mm``, ``n_tets``, ``fine_n_tets`` and per position
+        ``mhd_mm``, ``fine_mhd_mm``, ``change_mm`` (fine minus default); or ``skipped`` with
+        the reason (a given problem folder has no label map to remesh).
+    """
+    if prep.register_dir is None:
+        return {"skipped": "a given problem folder has no label map to remesh"}
+    R, h = prep.runner, float(cfg["mesh"]["size_mm"])
+    fine = {**cfg, "mesh": {**cfg["mesh"], "size_mm": h / 2}}
+    prob_dir, prob_key = R.stage("problem", {"mesh": fine["mesh"], "surface": cfg["surface"]},
+                                 list(prep.problem_inputs),
+                                 _problem(prep.subject, prep.register_dir, fine),
+                                 label=f"refinement: mesh {h / 2:g} mm")
+    sf_dir, sf_key = R.stage("stress_free", {"model": model, "stress_free": cfg["stress_free"],
+                                             "solver": cfg["solver"]}, [prob_key],
+                             _stress_free(prob_dir, cfg, model, R.progress),
+                             label="refinement: stress-free")
+    out = {"size_mm": h, "fine_size_mm": h / 2, "positions": {},
+           "n_tets": _n_tets(prep.problem_dir), "fine_n_tets": _n_tets(prob_dir)}
+    for pos, d in pred_dirs.items():
+        fd, _ = R.stage("predict", {"position": pos, "model": model, "solver": cfg["solver"]},
+                        [prob_key, sf_key], _predict(prob_dir, sf_dir, pos, cfg, model),
+                        label=f"refinement: predict {pos}")
+        a = json.loads((d / "metrics.json").read_text())["mhd_mm"]
+        b = json.loads((fd / "metrics.json").read_text())["mhd_mm"]
+        out["positions"][pos] = {"mhd_mm": a, "fine_mhd_mm": b, "change_mm": b - a}
+    return out
+
+
+def _n_tets(problem_dir: Path) -> int:
+    with np.load(problem_dir / "mesh.npz") as z:
+        return int(len(z["tets"]))
+
+
 @dataclass(frozen=True)
 class _ProblemSubject:
     id: str
@@ -428,6 +471,10 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
                                                                  model),
                                     label=f"predict {pos}")
 
+    refinement = None
+    if cfg["evaluate"]["refinement"]:
+        refinement = _refinement_check(prep, cfg, model, pred_dirs)
+
     paths = sorted({p for p in (cfg["fit"]["parameters"] or {})} | {
         f"materials.{r}.E" for r in model["materials"]})
     params = {"parameters": {p: get_param(model, p) for p in paths},
@@ -442,7 +489,7 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
                            segment_dirs=prep.segment_dirs,
                            volumes={p: subject.positions[p].volume_path for p in positions}
                            if prep.register_dir is not None else None,
-                           config=cfg)
+                           config=cfg, refinement=refinement)
     res = RunResult(stages=R.stages, metrics=result, params=params, out=str(out),
                     wall_s=time.perf_counter() - t0)
     write_json(out / "stages.json", {"stages": R.stages, "wall_s": res["wall_s"],

@@ -150,6 +150,32 @@ def test_a_fresh_run_gives_identical_numbers(phantom, first_run, tmp_path):
                                                         rel=1e-6, abs=1e-9)
 
 
+@pytest.mark.slow  # ~50 s on a quiet 2-core machine (a 6 mm mesh); .ci/run runs it
+def test_refinement_check_predicts_again_on_a_mesh_of_half_the_edge(phantom, first_run,
+                                                                    tmp_path):
+    out, _ = first_run
+    truth = Path(str(phantom) + "_truth")
+    cfg = resolve_config({**_config(truth), "evaluate": {"refinement": True}})
+    res = run_subject(phantom, cfg, tmp_path / "refined", progress=False,
+                      cache=out / "cache")
+    status = {s["label"]: s["status"] for s in res["stages"]}
+    # the default-size stages come from the first run's cache; only the check runs
+    assert {k for k, v in status.items() if v == "ran"} == {
+        "refinement: mesh 6 mm", "refinement: stress-free",
+        *(f"refinement: predict {p}" for p in POSITIONS)}
+    ref = res["metrics"]["refinement"]
+    first = json.loads((out / "metrics.json").read_text())["positions"]
+    assert ref["size_mm"] == 12.0 and ref["fine_size_mm"] == 6.0
+    assert ref["fine_n_tets"] > 3 * ref["n_tets"]  # halving the edge: ~8x the tets in bulk
+    for pos in POSITIONS:
+        r = ref["positions"][pos]
+        assert r["mhd_mm"] == first[pos]["mhd_mm"]
+        assert math.isfinite(r["fine_mhd_mm"]) and r["fine_mhd_mm"] >= 0
+        assert r["change_mm"] == pytest.approx(r["fine_mhd_mm"] - r["mhd_mm"])
+    html = (tmp_path / "refined" / "report.html").read_text()
+    assert "Mesh refinement check" in html and "MHD at 6 mm" in html
+
+
 def test_changed_parameter_reruns_only_downstream(phantom, first_run):
     out, _ = first_run
     truth = Path(str(phantom) + "_truth")
