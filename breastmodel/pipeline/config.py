@@ -56,7 +56,7 @@ DEFAULTS: dict[str, Any] = {
     "evaluate": {"positions": None, "refinement": False},
     "fit": {"enabled": False, "calibrate": None, "evaluate": None, "method": "optimizer",
             "budget": 100, "parameters": {}, "n_workers": 1, "scheduler": None,
-            "sensitivity": True},
+            "sensitivity": True, "sees": ["skin"]},
 }
 
 _TABLE_KEYS = {
@@ -68,8 +68,13 @@ _TABLE_KEYS = {
                     "min_improvement_mm"},
     "evaluate": {"positions", "refinement"},
     "fit": {"enabled", "calibrate", "evaluate", "method", "budget", "parameters", "n_workers",
-            "scheduler", "sensitivity"},
+            "scheduler", "sensitivity", "sees"},
 }
+
+
+# What a fit may compare with the measurements: the skin surfaces (signed node-to-surface
+# distances) and the internal landmarks of ``landmarks.csv`` (predicted minus measured).
+FIT_SEES = ("skin", "landmarks")
 
 
 def _merge(base: dict, over: Mapping) -> dict:
@@ -136,6 +141,11 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
             get_param(cfg["model"], path)
         except KeyError as exc:
             raise ConfigError(f"{where} [fit.parameters]: {exc.args[0]}") from None
+    sees = fit["sees"]
+    if (not isinstance(sees, list) or not sees or len(set(sees)) != len(sees)
+            or not set(sees) <= set(FIT_SEES)):
+        raise ConfigError(f"{where} [fit] sees must be a non-empty list of distinct items "
+                          f"from {list(FIT_SEES)}, got {sees!r}")
     if fit["enabled"] and not fit["parameters"]:
         raise ConfigError(f"{where} [fit] enabled = true needs [fit.parameters]")
     return cfg

@@ -400,6 +400,7 @@ def fit_parameters(problem_dir: Path, settings: Mapping[str, Any], fit: Mapping[
                        x0=x0 if len(x0) == len(params) else None)
     res["calibrate"] = list(settings["calibrate"])
     res["evaluate"] = list(settings.get("evaluate") or [])
+    res["sees"] = list(settings.get("sees") or ["skin"])
     if fit.get("sensitivity", True):
         res["sensitivity"] = sensitivity(problem_dir, settings, res["best"]["params"], params,
                                          work_dir=work_dir, progress=progress)

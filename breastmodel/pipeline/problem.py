@@ -299,44 +299,60 @@ def score_position(problem: Problem, x: np.ndarray, position: str, *,
     out["regions"] = per_region_metrics(d, skin_node_regions(mesh)[nodes], names)
     out["signed_error"] = d
     out["skin_nodes"] = nodes
+    lm = predicted_landmarks(problem, x, position)
+    if lm is not None:
+        out["landmarks"] = landmark_errors(lm[1], lm[2], lm[0])
+    return out
+
+
+def predicted_landmarks(problem: Problem, x: np.ndarray, position: str):
+    """The landmarks known in the reference and in ``position``, carried by the mesh from
+    the reference to x (N, 3): (names, predicted (k, 3) mm, measured (k, 3) mm), or None
+    when the two positions share no landmark."""
     lm_ref = problem.landmarks.get(problem.reference, {})
     lm_pos = problem.landmarks.get(position, {})
     common = [k for k in lm_ref if k in lm_pos]
-    if common:
-        tet, bary = landmark_barycentric(mesh, np.array([lm_ref[k] for k in common]))
-        pred = np.einsum("ki,kij->kj", bary, x[np.asarray(mesh.tets)[tet]])
-        out["landmarks"] = landmark_errors(pred, np.array([lm_pos[k] for k in common]), common)
-    return out
+    if not common:
+        return None
+    mesh = mesh_of(problem, len(x))
+    tet, bary = landmark_barycentric(mesh, np.array([lm_ref[k] for k in common]))
+    pred = np.einsum("ki,kij->kj", bary, x[np.asarray(mesh.tets)[tet]])
+    return common, pred, np.array([lm_pos[k] for k in common])
 
 
 def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
                     settings: Mapping[str, Any], *, residuals: bool = False) -> dict:
     """The fitting objective: stress-free estimate -> forward solve of every calibration
-    position -> MHD on the skin. Never raises for a failed solve (NaN instead).
+    position -> MHD on the skin and/or mean landmark error (``settings["sees"]``). Never
+    raises for a failed solve (NaN instead).
 
     Parameters
     ----------
     params : parameter path -> value (e.g. ``{"materials.breast_left.E": 0.8}``, kPa)
     problem_dir : problem folder (see the module notes)
     settings : ``{"model", "solver", "stress_free"}`` tables of the resolved config and
-        ``"calibrate"`` (position names) and optionally ``"evaluate"`` (also scored, not in
-        the objective)
-    residuals : also return ``residual`` {calibration position: signed node-to-surface
-        errors of the predicted skin nodes, mm} (the least-squares fit's vector)
+        ``"calibrate"`` (position names), optionally ``"evaluate"`` (also scored, not in
+        the objective) and ``"sees"`` (``pipeline.config.FIT_SEES``; default ``["skin"]``)
+    residuals : also return ``residual`` {calibration position: the least-squares fit's
+        vector, see :func:`_residual`}
 
     Returns
     -------
     dict
-        ``objective`` (mean MHD over the calibration positions, mm; NaN on failure),
-        ``mhd_mm`` {position: mm}, ``forward_solves``, ``wall_s``, ``error`` (str or None).
+        ``objective`` (mean over the calibration positions and the seen measurements of the
+        skin MHD and the mean landmark error, mm; NaN on failure), ``mhd_mm`` {position:
+        mm}, ``landmarks_mm`` {position: mean landmark error, mm; when seen},
+        ``forward_solves``, ``wall_s``, ``error`` (str or None).
     """
     t0 = time.perf_counter()
     problem = load_problem(problem_dir)
     model = set_params(settings["model"], params)
     calibrate = list(settings["calibrate"])
     positions = calibrate + [p for p in settings.get("evaluate") or () if p not in calibrate]
-    out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "forward_solves": 0,
-                           "error": None, **({"residual": {}} if residuals else {})}
+    sees = list(settings.get("sees") or ["skin"])
+    out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "landmarks_mm": {},
+                           "forward_solves": 0, "error": None,
+                           **({"residual": {}} if residuals else {})}
     try:
         X, info = stress_free_geometry(problem, model, settings["stress_free"],
                                        settings["solver"])
@@ -352,13 +368,14 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
             finally:
                 out["forward_solves"] += 1
             out["mhd_mm"][pos] = score_position(problem, state.x, pos)["mhd_mm"]
+            lm = predicted_landmarks(problem, state.x, pos) if "landmarks" in sees else None
+            if lm is not None:
+                out["landmarks_mm"][pos] = float(np.linalg.norm(lm[1] - lm[2], axis=1).mean())
             if residuals and pos in calibrate:
-                from breastmodel.evaluation import point_to_surface
-
-                d, _ = point_to_surface(state.x[skin_nodes(problem, len(state.x))],
-                                        *problem.skins[pos], signed=True)
-                out["residual"][pos] = d.tolist()
-        out["objective"] = float(np.mean([out["mhd_mm"][p] for p in calibrate]))
+                out["residual"][pos] = _residual(problem, state.x, pos, sees, lm).tolist()
+        out["objective"] = float(np.mean(
+            [out["mhd_mm"][p] for p in calibrate if "skin" in sees]
+            + [out["landmarks_mm"][p] for p in calibrate if p in out["landmarks_mm"]]))
     except Exception as exc:  # noqa: BLE001 - one failed point must not end a fit or sweep
         # (SolverError, inverted elements, and any failure inside the stress-free iteration
         # are recorded with their type; a fit where every point fails reports the first)
@@ -371,6 +388,26 @@ def sweep_point(point: Mapping[str, float], *, problem_dir: str,
                 settings: Mapping[str, Any]) -> dict:
     """:func:`evaluate_params` in the form ``run_sweep`` calls (use functools.partial)."""
     return evaluate_params(point, problem_dir, settings)
+
+
+def _residual(problem: Problem, x: np.ndarray, position: str, sees: Sequence[str],
+              lm) -> np.ndarray:
+    """What the least-squares fit minimises at one position: the skin nodes' signed
+    distances to the measured skin (mm) and/or the landmarks' error components (mm). With
+    both, each part is divided by the square root of its length, so that each weighs as its
+    mean square."""
+    from breastmodel.evaluation import point_to_surface
+
+    parts = []
+    if "skin" in sees:
+        d, _ = point_to_surface(x[skin_nodes(problem, len(x))], *problem.skins[position],
+                                signed=True)
+        parts.append(np.asarray(d, float))
+    if lm is not None:
+        parts.append((lm[1] - lm[2]).ravel())
+    if len(parts) > 1:
+        parts = [p / math.sqrt(len(p)) for p in parts]
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def fit_settings(cfg: Mapping[str, Any], positions: Sequence[str], reference: str) -> dict:
@@ -388,4 +425,4 @@ def fit_settings(cfg: Mapping[str, Any], positions: Sequence[str], reference: st
         if p not in positions:
             raise ValueError(f"fit: position {p!r} is not among the subject's {sorted(positions)}")
     return {"model": cfg["model"], "solver": cfg["solver"], "stress_free": cfg["stress_free"],
-            "calibrate": cal, "evaluate": list(ev)}
+            "calibrate": cal, "evaluate": list(ev), "sees": list(fit["sees"])}

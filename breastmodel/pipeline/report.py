@@ -371,7 +371,11 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
     if fit_info:
         best = fit_info.get("best", {})
         rows = [[k, v] for k, v in best.get("params", {}).items()]
-        rows += [["mean MHD of the calibration positions, mm", best.get("objective")],
+        sees = fit_info.get("sees", ["skin"])
+        what = ("mean MHD of the calibration positions, mm" if sees == ["skin"] else
+                f"objective: mean of {' and '.join(sees)} errors over the calibration "
+                "positions, mm")
+        rows += [[what, best.get("objective")],
                  ["simulations", fit_info.get("n_simulations")],
                  ["failed simulations", fit_info.get("n_failed")],
                  ["calibration positions", ", ".join(fit_info.get("calibrate", []))],

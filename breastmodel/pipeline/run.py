@@ -393,6 +393,21 @@ def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     return _model_stages(prep, cfg, out, t0)
 
 
+def _check_landmarks(problem_dir: Path, settings: Mapping[str, Any]) -> None:
+    """A fit that sees the landmarks needs some in the reference and in every calibration
+    position: fail before the first solve otherwise."""
+    if "landmarks" not in settings["sees"]:
+        return
+    meta = json.loads((problem_dir / "problem.json").read_text())
+    lm = meta.get("landmarks", {})
+    ref = set(lm.get(meta["reference"], {}))
+    missing = [p for p in settings["calibrate"] if not ref & set(lm.get(p, {}))]
+    if missing:
+        raise StageError("fit", f"[fit] sees = {settings['sees']} needs landmarks known in "
+                         f"the reference ({meta['reference']}) and in {missing} "
+                         "(landmarks.csv in the subject folder)", problem_dir / "problem.json")
+
+
 def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str, Any],
                       pred_dirs: Mapping[str, Path]) -> dict:
     """The prediction at the model's (fitted) parameters again on a mesh of half the edge
@@ -453,6 +468,7 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
     fit_info = None
     if cfg["fit"]["enabled"]:
         settings = fit_settings(cfg, positions, subject.reference)
+        _check_landmarks(prob_dir, settings)
         fit_dir, _ = R.stage("fit", {"settings": settings, "fit": {
             k: v for k, v in cfg["fit"].items() if k not in ("n_workers", "scheduler")}},
             [prob_key], _fit(prob_dir, cfg, settings, out, R.progress))
@@ -482,7 +498,7 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
     if fit_info is not None:
         params["fit"] = {k: fit_info[k] for k in ("method", "best", "n_simulations",
                                                   "calibrate", "evaluate", "termination",
-                                                  "uncertainty", "identifiability")
+                                                  "uncertainty", "identifiability", "sees")
                          if k in fit_info}
     result = write_outputs(out, prob_dir, sf_dir, pred_dirs, params, fit_info,
                            subject_id=subject.id, register_dir=prep.register_dir,

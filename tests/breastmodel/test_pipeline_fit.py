@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 
+from breastmodel.config import ConfigError
 from breastmodel.pipeline import fit as fitmod
 from breastmodel.pipeline import problem as problem_mod
 from breastmodel.pipeline.config import get_param, resolve_config, set_params
@@ -229,3 +230,52 @@ def test_identifiability_names_the_pairs_the_data_cannot_separate():
     # a column of zeros: the data do not see that parameter, J^T J is singular
     blind = fitmod.identifiability(np.column_stack([a, np.zeros(200)]), names[:2])
     assert blind["unseen"] == [names[1]] and blind["condition"] is None
+
+
+def _cube_problem():
+    """Unit-cube-like block of 5 tets (10 mm), skin = its top face (z = 10), a landmark
+    inside; the measured skin is the top face lifted by 1 mm, the measured landmark moved
+    by (0, 0, 2) mm in 'prone'."""
+    from breastmodel.pipeline.problem import Problem
+    from mechanics.mesh import Mesh
+
+    nodes = 10.0 * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0],
+                             [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]], float)
+    tets = np.array([[0, 1, 3, 5], [0, 3, 2, 6], [0, 5, 4, 6], [3, 5, 6, 7], [0, 3, 6, 5]])
+    top = np.array([[4, 5, 7], [4, 7, 6]])
+    mesh = Mesh(nodes=nodes, tets=tets, region=np.ones(5, np.int32),
+                face_sets={"skin": top}, node_sets={"fixed": np.arange(4)})
+    measured = (nodes[4:] + [0.0, 0.0, 1.0], np.array([[0, 1, 3], [0, 3, 2]]))
+    lm = {"supine": {"a": np.array([5.0, 5.0, 5.0])},
+          "prone": {"a": np.array([5.0, 5.0, 7.0])}}
+    return Problem(mesh, {"prone": np.array([0, 0, -1.0]), "supine": np.array([0, 1.0, 0])},
+                   {"prone": measured, "supine": measured}, lm, "supine")
+
+
+def test_the_fit_sees_skin_landmarks_or_both():
+    from breastmodel.pipeline.problem import _residual, predicted_landmarks
+
+    problem = _cube_problem()
+    x = problem.mesh.nodes.copy()
+    names, pred, meas = predicted_landmarks(problem, x, "prone")
+    assert names == ["a"] and np.allclose(pred, [[5.0, 5.0, 5.0]])  # carried unmoved
+    assert np.allclose(meas, [[5.0, 5.0, 7.0]])
+    lm = (names, pred, meas)
+    skin = _residual(problem, x, "prone", ["skin"], None)
+    assert len(skin) == 4 and np.allclose(np.abs(skin), 1.0)  # 1 mm below the lifted face
+    only = _residual(problem, x, "prone", ["landmarks"], lm)
+    assert np.allclose(only, [0.0, 0.0, -2.0])
+    both = _residual(problem, x, "prone", ["skin", "landmarks"], lm)
+    # each part divided by sqrt(its length): the sum of squares is the sum of mean squares
+    assert float(both @ both) == pytest.approx(1.0 + 4.0 / 3.0)
+    # moving the mesh up by 2 mm zeroes the landmark error
+    x2 = x + [0.0, 0.0, 2.0]
+    assert np.allclose(predicted_landmarks(problem, x2, "prone")[1], meas)
+
+
+def test_sees_is_checked_with_the_config():
+    with pytest.raises(ConfigError, match="sees"):
+        resolve_config({"fit": {"sees": ["skin", "fiducials"]}})
+    with pytest.raises(ConfigError, match="sees"):
+        resolve_config({"fit": {"sees": []}})
+    assert resolve_config({})["fit"]["sees"] == ["skin"]
