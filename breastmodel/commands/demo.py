@@ -31,6 +31,11 @@ log = logging.getLogger("breastmodel.demo")
 #: Rim of the skin left out of the diagnosis, mm (``diagnose``'s default of 15 mm leaves too
 #: few skin nodes of the half-size demo phantom, whose skin the slab's sides cut).
 RIM_MM = 5.0
+#: Registration settings of the demo (the rest: the pipeline's defaults). The fiducial check
+#: is a warning here, not an error: the phantom's soft breast carries its inframammary-fold
+#: markers about 2 mm between prone and supine, so the check flags prone although the refined
+#: transform is right (chest-wall TRE against the truth: mean 0.18 mm, max 0.32 mm).
+REGISTER = {"require_fiducials": False}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -119,6 +124,7 @@ def run_story(data: str | Path, out: str | Path, *, mesh_size_mm: float = 8.0,
     # run 1: the bulk model, one breast modulus fitted on supine and prone, tilted held out
     cfg0 = suite_config("truth_labels", truth_dir, list(subject.positions), subject.reference,
                         mesh_size_mm=mesh_size_mm, E_start=0.5)
+    cfg0["register"].update(REGISTER)
     run0, run1 = out / "run0", out / "run1"
     timed("fit the bulk model (run 1)",
           lambda: run_subject(subject_dir, cfg0, run0, progress=progress))
