@@ -177,10 +177,10 @@ def write_story_page(path: Path, res: dict[str, Any]) -> None:
         f"<tr><td>{e(p)}</td><td>{b:.2f}</td><td>{a:.2f}</td><td>{a - b:+.2f}</td></tr>"
         for p, (b, a) in res["mhd_mm"].items())
     fitted = res["compare"]["runs"]
-    par = "".join(
+    par = "".join(  # a tied pair "a|b" repeats a and b
         f"<tr><td>{e(r['label'])}</td><td>"
         + e(", ".join(f"{k} = {v:.3g}" for k, v in sorted(r["parameters"].items())
-                      if isinstance(v, float))) + "</td></tr>" for r in fitted)
+                      if isinstance(v, float) and "|" not in k)) + "</td></tr>" for r in fitted)
     steps = "".join(f"<tr><td>{e(k)}</td><td>{v['wall_s']:.0f}</td><td>{v['cpu_s']:.0f}</td>"
                     f"</tr>" for k, v in res["steps"].items())
     pages = [("1. The bulk model's report: where it fails", "run0/report.html"),
@@ -190,6 +190,11 @@ def write_story_page(path: Path, res: dict[str, Any]) -> None:
     frames = "".join(
         f"<h2>{e(t)}</h2><p><a href='{e(u)}'>{e(u)}</a> (open in its own tab)</p>"
         f"<iframe src='{e(u)}' loading='lazy'></iframe>" for t, u in pages)
+    regions_note = ("<p>With the <code>regions</code> effect on, "
+                    "<code>effects.regions.E_left</code> "
+                    "and <code>E_right</code> are the moduli of the left and the right breast, "
+                    "and <code>materials.breast_*.E</code> are no longer used.</p>"
+                    if str(res["named"]).startswith("regions") else "")
     style = ("<style>body{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}"
              "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;"
              "padding:3px 8px;text-align:right}td:first-child{text-align:left}"
@@ -211,7 +216,7 @@ registered label maps) ties one modulus across both breasts.</p>
 <table><tr><th>position</th><th>MHD before, mm</th><th>MHD after, mm</th><th>change</th></tr>
 {rows}</table>
 <p>MHD: modified Hausdorff distance between the predicted and the measured skin.</p>
-<h3>Fitted parameters (kPa)</h3><table>{par}</table>
+<h3>Fitted parameters (kPa)</h3><table>{par}</table>{regions_note}
 <h3>Time per step (s)</h3><table><tr><th>step</th><th>wall</th><th>CPU</th></tr>{steps}</table>
 {frames}"""
     write_atomic(Path(path), "<!doctype html><html><head><meta charset='utf-8'>"
