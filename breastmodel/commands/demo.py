@@ -176,6 +176,15 @@ def write_story_page(path: Path, res: dict[str, Any]) -> None:
     rows = "".join(
         f"<tr><td>{e(p)}</td><td>{b:.2f}</td><td>{a:.2f}</td><td>{a - b:+.2f}</td></tr>"
         for p, (b, a) in res["mhd_mm"].items())
+    where = ""
+    for p, reg in (res["compare"].get("regions") or {}).items():
+        sub = {k: v["rmse_mm"] for k, v in reg.items() if "." in k}
+        worst = max(sub, key=lambda k: sub[k][0]) if sub else None
+        where += (f"<tr><td>{e(p)}</td>"
+                  + "".join(f"<td>{reg[k]['rmse_mm'][0]:.2f} &rarr; {reg[k]['rmse_mm'][1]:.2f}"
+                            f"</td>" if k in reg else "<td>-</td>" for k in ("left", "right"))
+                  + (f"<td>{e(worst)}: {sub[worst][0]:.2f} &rarr; {sub[worst][1]:.2f}</td>"
+                     if worst else "<td>-</td>") + "</tr>")
     fitted = res["compare"]["runs"]
     par = "".join(  # a tied pair "a|b" repeats a and b
         f"<tr><td>{e(r['label'])}</td><td>"
@@ -216,6 +225,9 @@ registered label maps) ties one modulus across both breasts.</p>
 <table><tr><th>position</th><th>MHD before, mm</th><th>MHD after, mm</th><th>change</th></tr>
 {rows}</table>
 <p>MHD: modified Hausdorff distance between the predicted and the measured skin.</p>
+<h3>Where the bulk model fails: skin RMSE per breast, before &rarr; after (mm)</h3>
+<table><tr><th>position</th><th>left breast</th><th>right breast</th>
+<th>worst region before</th></tr>{where}</table>
 <h3>Fitted parameters (kPa)</h3><table>{par}</table>{regions_note}
 <h3>Time per step (s)</h3><table><tr><th>step</th><th>wall</th><th>CPU</th></tr>{steps}</table>
 {frames}"""
