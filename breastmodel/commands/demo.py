@@ -253,6 +253,14 @@ def run(args: argparse.Namespace) -> int:
     print(f"{'position':>18} {'MHD before':>11} {'MHD after':>10}   (mm)")
     for p, (b, a) in res["mhd_mm"].items():
         print(f"{p:>18} {b:11.2f} {a:10.2f}")
+    regions = res["compare"].get("regions") or {}
+    sides = [(reg[k]["rmse_mm"][0], p, k) for p, reg in regions.items()
+             for k in ("left", "right") if k in reg]
+    if sides:
+        rmse, p, k = max(sides)
+        other = regions[p]["right" if k == "left" else "left"]["rmse_mm"][0]
+        print(f"where the bulk model fails most: {p}, {k} breast (skin RMSE {rmse:.2f} mm; "
+              f"the other breast {other:.2f} mm)")
     print(f"demo finished in {wall:.0f} s wall, {cpu:.0f} s CPU (load {os.getloadavg()[0]:.1f})")
     print(f"the whole story: {Path(res['page']).resolve()}")
     return 0
