@@ -1,4 +1,4 @@
-# One command each: `make demo` runs the main job on built-in demo data, `make test` runs the tests.
+# One command each: `make demo` tells the story on the shipped phantom (fit, diagnose the missing effect, refit, compare), `make test` runs the tests.
 # Both set everything up on a fresh machine with Python 3.11 (venv, Python packages, and Debian's
 # libusb-1.0-0 for open3d and chromium for the report's rendering test).
 PYTHON ?= python3
