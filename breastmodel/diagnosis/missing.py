@@ -294,6 +294,9 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
             v = float(c.start.get(f, get_param(cm, f) or 1.0))
             steps[f"cand|{c.name}|{f}"] = h = _log_step(v, lo, hi)
             variants[f"cand|{c.name}|{f}"] = set_params(cm, {f: v * math.exp(h)})
+    # the skin rim is checked before any model evaluation: a rim too wide stops at once
+    nodes = skin_nodes(problem, mesh.n_nodes)
+    keep = _away_from_rim(mesh, nodes, run.X[:mesh.n_nodes], rim_mm)
     work_dir = Path(work_dir) if work_dir else run.out / "diagnosis" / "evaluations"
     base_rec, base_state = _base_evaluation(model, run.problem_dir, settings, work_dir)
     if base_rec["status"] != "ok":
@@ -319,8 +322,6 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                        for k, r in res.items()}
 
     # ---- geometry of the residual vector: which entries are which position / region
-    nodes = skin_nodes(problem, mesh.n_nodes)
-    keep = _away_from_rim(mesh, nodes, run.X[:mesh.n_nodes], rim_mm)
     n_skin = int(keep.sum())
     region_masks = {k: m[keep] for k, m in _regions(problem, nodes, run.X[:mesh.n_nodes],
                                                      skin_node_regions(mesh)).items()}

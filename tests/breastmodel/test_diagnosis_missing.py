@@ -133,6 +133,14 @@ def test_the_diagnosis_ranks_the_hidden_skin_first(hidden_skin):
     assert set(where["positions"]) == {"prone", "supine", "supine_tilted"}
 
 
+def test_a_rim_that_leaves_no_skin_stops_before_any_evaluation(hidden_skin, tmp_path):
+    root, _ = hidden_skin
+    work = tmp_path / "evaluations"
+    with pytest.raises(ValueError, match="use a smaller rim_mm"):
+        rank_candidates(load_run(root / "run0"), work_dir=work, rim_mm=1e4, progress=False)
+    assert not work.exists() or not any(work.iterdir())  # nothing was evaluated
+
+
 def test_run_add_effect_from_a_diagnosed_run_starts_at_its_estimates(hidden_skin):
     from breastmodel.commands.run import add_effect, from_run_config
 
