@@ -94,6 +94,8 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     ConfigError
         Unknown table or key, unknown region name, bad stress-free method or fit settings.
     """
+    from mechanics.effects import effect_name
+    from mechanics.effects.gravity import Gravity
     from mechanics.mesh import REGIONS
 
     raw = dict(raw or {})
@@ -111,8 +113,8 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
         if not isinstance(mat, Mapping) or "name" not in mat:
             raise ConfigError(f"{where} [model.materials.{region}] needs a 'name'")
     for eff, kw in model["effects"].items():
-        if eff.split(":", 1)[0] == "gravity":
-            raise ConfigError(f"{where} [model.effects.gravity]: gravity is set per position "
+        if effect_name(eff) == Gravity.name:
+            raise ConfigError(f"{where} [model.effects.{eff}]: gravity is set per position "
                               "by the pipeline; use model.density and model.g")
         if not isinstance(kw, Mapping | list):
             raise ConfigError(f"{where} [model.effects.{eff}] must be a table")

@@ -233,6 +233,13 @@ class Effect:
         return frozenset()
 
     @classmethod
+    def material_values(cls, table: Mapping[str, Any]) -> dict[str, float]:
+        """``"region.param"`` -> value of the bulk-material parameters this effect sets with
+        options ``table`` (region names of ``mechanics.mesh.REGIONS``); see
+        ``sets_materials``."""
+        return {}
+
+    @classmethod
     def inert_params(cls, table: Mapping[str, Any]) -> frozenset[str]:
         """Parameters that have no effect with options ``table`` (never scored)."""
         return frozenset()

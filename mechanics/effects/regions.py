@@ -49,6 +49,14 @@ class Regions(MaterialModifier):
         return frozenset({"gland_left", "gland_right"} if table.get("gland", True) else ())
 
     @classmethod
+    def material_values(cls, table):
+        v = {p.name: float(table.get(p.name, p.default)) for p in cls.params}
+        gland = bool(table.get("gland", True))
+        return {"breast_left.E": v["E_left"], "breast_right.E": v["E_right"],
+                "gland_left.E": v["E_gland"] if gland else v["E_left"],
+                "gland_right.E": v["E_gland"] if gland else v["E_right"]}
+
+    @classmethod
     def variants(cls, view):
         """Left-right asymmetry, and glandular tissue with its own modulus (when the mesh
         keeps gland), starting from the model's breast moduli."""
