@@ -61,3 +61,29 @@ def test_a_list_of_tables_is_checked_table_by_table():
     raw = _model({"fixed": [{"node_set": "fixed"}, {"node_set": "fixed", "bogus": 1}]})
     with pytest.raises(ConfigError, match=r"\[model\.effects\.fixed #2\]: unknown key 'bogus'"):
         resolve_config(raw)
+
+
+def test_a_new_effect_with_options_is_one_class(monkeypatch):
+    """Everything the config, the problem builder and the diagnosis need comes from the
+    class: its options are accepted and checked, its split and probe declarations are read."""
+    from breastmodel.diagnosis.candidates import enumerate_candidates
+    from mechanics.effects import EFFECTS, Effect, Option, Param, needs_split_interface
+
+    class Prestress(Effect):
+        name = "test_prestress"
+        params = (Param("sigma", "kPa", 0.5, 0.0, 5.0),)
+        option_specs = (Option("axis", "z", "direction of the prestress", ("x", "y", "z"),
+                               (str,)),)
+        probe = {"sigma": 2.0}
+        split_interface = True
+
+    monkeypatch.setitem(EFFECTS, Prestress.name, Prestress)
+    cfg = resolve_config(_model({"test_prestress": {"sigma": 1.0, "axis": "x"}}))
+    assert cfg["model"]["effects"]["test_prestress"] == {"sigma": 1.0, "axis": "x"}
+    with pytest.raises(ConfigError, match=r"\[model\.effects\.test_prestress\] axis: "):
+        resolve_config(_model({"test_prestress": {"axis": "w"}}))
+    assert needs_split_interface(["fixed", "test_prestress:2"])
+    cand = next(c for c in enumerate_candidates(_model()["model"])[0]
+                if c.name == "test_prestress")
+    assert cand.effects == {"test_prestress": {"sigma": 2.0}}
+    assert cand.start == {"effects.test_prestress.sigma": 2.0}
