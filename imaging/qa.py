@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-#: Names of the segmentation labels (0 is background).
-TISSUES = {1: "breast", 2: "muscle", 3: "gland"}
+from imaging.labels import BREAST, BREAST_TISSUE, GLAND, LABEL_COLOURS, TISSUES
 
 
 def _same_grid(a: sitk.Image, b: sitk.Image) -> bool:
@@ -44,11 +43,11 @@ def dice(labels: sitk.Image, truth: sitk.Image, *, merge_gland: bool = True) -> 
     b = sitk.GetArrayViewFromImage(truth)
     out = {}
     for code, name in TISSUES.items():
-        if code == 1 and merge_gland:
-            ma, mb = (a == 1) | (a == 3), (b == 1) | (b == 3)
+        if code == BREAST and merge_gland:
+            ma, mb = np.isin(a, BREAST_TISSUE), np.isin(b, BREAST_TISSUE)
         else:
             ma, mb = a == code, b == code
-        if code == 3 and not (ma.any() and mb.any()):
+        if code == GLAND and not (ma.any() and mb.any()):
             continue
         denom = int(ma.sum()) + int(mb.sum())
         out[name] = float(2 * np.count_nonzero(ma & mb) / denom) if denom else float("nan")
@@ -59,7 +58,7 @@ def tissue_volumes_ml(labels: sitk.Image) -> dict[str, float]:
     """Volume of each tissue in millilitres (1 ml = 1000 mm^3)."""
     a = sitk.GetArrayViewFromImage(labels)
     vox = float(np.prod(labels.GetSpacing())) / 1000.0
-    counts = np.bincount(a.ravel().astype(np.int64), minlength=4)
+    counts = np.bincount(a.ravel().astype(np.int64), minlength=max(TISSUES) + 1)
     return {name: float(counts[code] * vox) for code, name in TISSUES.items()}
 
 
@@ -142,11 +141,10 @@ def qa_figure(img: sitk.Image, labels: sitk.Image, *, seeds=None, centre=None, t
     lo, hi = np.percentile(np.concatenate([v[1].ravel() for v in views]), [1, 99.5])
     orient = view_orientation(img)
     fig = Figure(figsize=(13, 4.5))
-    colours = {1: "tab:orange", 2: "tab:red", 3: "tab:green"}
     for ax, (name, im, lb, aspect) in zip(fig.subplots(1, 3), views):
         origin = "upper" if name == "axial" else "lower"
         ax.imshow(im, cmap="gray", vmin=lo, vmax=hi, aspect=aspect, origin=origin)
-        for code, col in colours.items():
+        for code, col in LABEL_COLOURS.items():
             m = lb == code
             if m.any() and not m.all():
                 # contour follows the axes that imshow set up (row 0 on top for axial)

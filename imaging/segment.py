@@ -30,12 +30,11 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from imaging.fiducials import body_without_markers, detect_markers
+from imaging.labels import BACKGROUND, BREAST, GLAND, MUSCLE
 from imaging.preprocess import check_volume, preprocess
 
 STAGE = "segment"
 log = logging.getLogger(__name__)
-
-BACKGROUND, BREAST, MUSCLE, GLAND = 0, 1, 2, 3
 
 #: Smallest accepted contrast-to-noise ratio between body (fat) and background.
 MIN_CNR = 5.0

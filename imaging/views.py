@@ -18,6 +18,8 @@ from collections.abc import Mapping
 import numpy as np
 import SimpleITK as sitk
 
+from imaging.labels import LABEL_COLOURS
+
 __all__ = ["ORIENTATIONS", "LABEL_COLOURS", "lps", "slice_count", "centre_index",
            "oriented_slice", "slice_position_mm", "draw_slice", "views_figure", "slice_browser"]
 
@@ -25,8 +27,6 @@ __all__ = ["ORIENTATIONS", "LABEL_COLOURS", "lps", "slice_count", "centre_index"
 ORIENTATIONS = {"axial": (0, ("R", "L"), ("P", "A")),
                 "coronal": (1, ("R", "L"), ("I", "S")),
                 "sagittal": (2, ("A", "P"), ("I", "S"))}
-#: label code -> matplotlib colour (breast, muscle / chest wall, gland)
-LABEL_COLOURS = {1: "tab:orange", 2: "tab:red", 3: "tab:green"}
 
 
 def lps(img: sitk.Image) -> sitk.Image:

@@ -14,10 +14,9 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage as ndi
 
-log = logging.getLogger(__name__)
+from imaging.labels import BACKGROUND, BREAST, GLAND, KNOWN_LABELS, MUSCLE  # noqa: F401
 
-BACKGROUND, BREAST, MUSCLE, GLAND = 0, 1, 2, 3
-KNOWN_LABELS = (BACKGROUND, BREAST, MUSCLE, GLAND)
+log = logging.getLogger(__name__)
 
 
 class MeshingWarning(UserWarning):

@@ -39,6 +39,15 @@ def describe(name: str | None = None) -> str:
         for p in cls.params:
             bounds = f"[{p.lower:g}, {p.upper:g}]"
             lines.append(f"{p.name:<12} {p.unit:<8} {p.default:>9g} {bounds:<20} {p.doc}")
+    if cls.option_specs:
+        lines += ["", f"{'option':<18} {'default':<28} meaning"]
+        for o in cls.option_specs:
+            also = f" (one of {', '.join(map(str, o.choices))})" if o.choices else ""
+            lines.append(f"{o.name:<18} {o.default!r:<28} {o.doc}{also}")
+    if cls.split_interface:
+        lines += ["", "splits the breast-muscle interface into two node layers"]
+    if cls.excludes:
+        lines += ["excludes: " + ", ".join(cls.excludes)]
     return "\n".join(lines)
 
 

@@ -5,8 +5,10 @@ A :class:`Candidate` is plain data: the effect tables it adds, replaces or remov
 parameters that are re-fitted with it (bounds from the effect's declared :class:`Param`), and
 how its switch-on may be scaled in the linear prediction (``amplitude``: ``(1, 1)`` for an
 on/off change such as sliding, ``(0, 2)`` where the effect's strength is continuous).
-Enumerating from :data:`mechanics.effects.EFFECTS` means a new effect file is a new
-candidate with no edit here, unless it needs a probe setting other than its defaults.
+Candidates come from what each effect in :data:`mechanics.effects.EFFECTS` declares
+(:class:`mechanics.effects.Effect`: ``not_diagnosed``, ``variants``, ``option_variants``,
+``inert_params``, ``sets_materials`` and each parameter's ``numerical`` and ``unscored``), so
+a new effect file is a new candidate with no edit here.
 """
 
 from __future__ import annotations
@@ -18,20 +20,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 __all__ = ["Candidate", "add_to_config", "candidate_by_name", "enumerate_candidates"]
-
-#: Effects that are not tissue physics to diagnose, with the reason.
-NOT_CANDIDATES = {
-    "gravity": "set per position from the registration",
-    "point_load": "an external load, not a property of the subject",
-    "fixed": "the chest-wall boundary condition every model has",
-}
-#: Effect parameters that are numerical settings, not physics (never scored).
-NUMERICAL = {"penalty", "tangential_penalty", "smoothing", "pressure_smoothing"}
-#: Effects whose own strength is probed at a value other than the registry default, because
-#: the default is the "barely on" end (Jm = 10 is nearly Neo-Hookean at breast strains).
-PROBE = {"strain_stiffening": {"Jm": 0.3}}
-#: Gent limit used to probe a membrane's strain stiffening.
-MEMBRANE_JM_PROBE = 0.5
 
 
 @dataclass(frozen=True)
@@ -88,17 +76,33 @@ def _bounds(param) -> tuple[float, float]:
     return (float(param.lower), float(param.upper))
 
 
-def _used(model: Mapping[str, Any]) -> dict[str, dict]:
-    """Effect name -> table of the effects a model uses (first instance of each)."""
-    out: dict[str, dict] = {}
+def _view(model: Mapping[str, Any], regions, node_pairs):
+    """The :class:`mechanics.effects.ModelView` of a model: the first instance of each
+    effect it uses (name -> table, name -> key), its materials and what the mesh has."""
+    from mechanics.effects import ModelView
+
+    used: dict[str, dict] = {}
+    keys: dict[str, str] = {}
     for key, table in model["effects"].items():
-        out.setdefault(str(key).split(":", 1)[0], dict(table) if isinstance(table, Mapping)
-                       else {})
-    return out
+        name = str(key).split(":", 1)[0]
+        if name not in used:
+            used[name] = dict(table) if isinstance(table, Mapping) else {}
+            keys[name] = key
+    return ModelView(used, keys, dict(model.get("materials", {})),
+                     None if regions is None else frozenset(regions),
+                     None if node_pairs is None else frozenset(node_pairs))
 
 
-def _key(model: Mapping[str, Any], name: str) -> str:
-    return next(k for k in model["effects"] if str(k).split(":", 1)[0] == name)
+def _from_variant(v) -> Candidate:
+    return Candidate(v.name, v.kind, v.doc, v.effects, v.free, v.amplitude, v.replaces, v.start)
+
+
+def _add_variants(variants, out: list[Candidate], skipped: list[dict]) -> None:
+    for v in variants:
+        if v.skip:
+            skipped.append({"name": v.name, "reason": v.skip})
+        else:
+            out.append(_from_variant(v))
 
 
 def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset = frozenset(),
@@ -120,140 +124,68 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
     skipped : [{"name", "reason"}] what is deliberately not scored, and why
     """
     from mechanics.effects import EFFECTS
-    from mechanics.effects.ligaments import GROUPS
-    from mechanics.materials import MATERIALS
-    from mechanics.mesh import REGIONS
 
     fitted = {p for f in fitted for p in str(f).split("|")}
-    used = _used(model)
+    view = _view(model, regions, node_pairs)
     out: list[Candidate] = []
     skipped: list[dict] = []
+    # Effects the model does not use.
     for name, cls in sorted(EFFECTS.items()):
-        if name in NOT_CANDIDATES:
-            skipped.append({"name": name, "reason": NOT_CANDIDATES[name]})
+        if cls.not_diagnosed:
+            skipped.append({"name": name, "reason": cls.not_diagnosed})
+        elif name not in view.used:
+            _add_variants(cls.variants(view), out, skipped)
+    # Options of effects the model already uses (a membrane's law, missing ligament groups).
+    for name, table in view.used.items():
+        if name in EFFECTS and not EFFECTS[name].not_diagnosed:
+            _add_variants(EFFECTS[name].option_variants(view.keys[name], table, view), out,
+                          skipped)
+    out += _held_fixed(model, view, fitted, skipped)
+    skipped.append({"name": "materials.*.nu", "reason": "nearly incompressible tissue by design "
+                    "(0.49, the paper's value)"})
+    return out, skipped
+
+
+def _held_fixed(model: Mapping[str, Any], view, fitted: set[str],
+                skipped: list[dict]) -> list[Candidate]:
+    """Candidates re-fitting a parameter the model holds fixed: effect parameters (unless
+    numerical, inert or declared unscored) and material parameters (unless an effect used
+    sets them)."""
+    from mechanics.effects import EFFECTS
+    from mechanics.materials import MATERIALS
+
+    out: list[Candidate] = []
+    for name, table in view.used.items():
+        cls = EFFECTS.get(name)
+        if cls is None or cls.not_diagnosed:
             continue
-        if name in used:
-            continue
-        strength = {p.name: p for p in cls.params if p.name not in NUMERICAL}
-        main = next(iter(strength.values()), None)
-        if name == "tied":
-            if "sliding" in used:
-                out.append(Candidate("tied", "effect", "bonded breast-muscle interface instead "
-                                     "of sliding", {_key(model, "sliding"): None, "tied": {}}))
-            else:
-                skipped.append({"name": "tied", "reason": "the model's interface is already "
-                                "bonded (conforming mesh)"})
-            continue
-        if name == "sliding":
-            change: dict[str, Any] = {"sliding": {}}
-            if "tied" in used:
-                change[_key(model, "tied")] = None
-            out.append(Candidate("sliding", "effect", cls.doc or "sliding interface", change))
-            continue
-        if name == "ligaments":
-            have = sorted(node_pairs) if node_pairs is not None else [
-                f"ligament_{g}" for g in GROUPS]
-            for g in GROUPS:
-                if f"ligament_{g}" in have:
-                    out.append(Candidate(
-                        f"ligaments:{g}", "effect", f"{g} suspensory ligaments (tension-only)",
-                        {"ligaments": {"groups": [g]}},
-                        {"effects.ligaments.E": _bounds(main)}, (0.0, 2.0),
-                        start={"effects.ligaments.E": main.default}))
-            continue
-        if name == "regions":
-            E = [float(model["materials"].get(f"breast_{s}", {}).get("E", 1.0))
-                 for s in ("left", "right")]
-            lo, hi = _bounds(strength["E_left"])
-            E = [min(max(e, lo), hi) for e in E]
-            replaces = tuple(f"materials.breast_{s}.E" for s in ("left", "right"))
-            out.append(Candidate(
-                "regions:asymmetry", "effect", "different moduli of the left and right breast",
-                {"regions": {"E_left": E[0], "E_right": E[1], "gland": False}},
-                {"effects.regions.E_left": (lo, hi), "effects.regions.E_right": (lo, hi)},
-                (0.0, 0.0), replaces,
-                {"effects.regions.E_left": E[0], "effects.regions.E_right": E[1]}))
-            if regions is None or {REGIONS["gland_left"], REGIONS["gland_right"]} & regions:
-                out.append(Candidate(
-                    "regions:gland", "effect", "glandular tissue with its own modulus",
-                    {"regions": {"E_left": E[0], "E_right": E[1], "E_gland": float(E[0]),
-                                 "gland": True}},
-                    {"effects.regions.E_gland": _bounds(strength["E_gland"])}, (0.0, 0.0),
-                    replaces, {"effects.regions.E_gland": float(E[0])}))
-            else:
-                skipped.append({"name": "regions:gland", "reason": "the mesh has no gland "
-                                "regions ([mesh] keep_gland = true)"})
-            continue
-        probe = dict(PROBE.get(name, {}))
-        free, start = {}, {}
-        if main is not None:
-            pname = next(iter(probe), main.name)
-            path = f"effects.{name}.{pname}"
-            free = {path: _bounds(strength[pname])}
-            v = float(probe.get(pname, strength[pname].default))
-            start = {path: v if v > 0 else strength[pname].upper / 100}  # log-scale re-fit
-        out.append(Candidate(name, "effect", cls.doc or name, {name: probe}, free,
-                             (0.0, 2.0) if free else (1.0, 1.0), start=start))
-    # Options of effects the model already uses: a membrane's strain stiffening, missing
-    # ligament groups.
-    for name in ("skin", "fascia"):
-        if name in used and used[name].get("law", "neo_hookean") != "gent":
-            key = _key(model, name)
-            out.append(Candidate(
-                f"strain_stiffening:{name}", "option",
-                f"Gent strain stiffening of the {name} membrane",
-                {key: {**used[name], "law": "gent", "Jm": MEMBRANE_JM_PROBE}},
-                {f"effects.{key}.Jm": _bounds(EFFECTS[name].params[-1])}, (0.0, 2.0),
-                start={f"effects.{key}.Jm": MEMBRANE_JM_PROBE}))
-    if "ligaments" in used and node_pairs is not None:
-        have = set(used["ligaments"].get("groups") or [
-            g for g in GROUPS if f"ligament_{g}" in node_pairs])
-        key = _key(model, "ligaments")
-        for g in GROUPS:
-            if g not in have and f"ligament_{g}" in node_pairs:
-                out.append(Candidate(
-                    f"ligaments:{g}", "option", f"{g} suspensory ligaments (tension-only)",
-                    {key: {**used["ligaments"], "groups": sorted(have | {g})}}))
-    # Parameters held fixed.
-    for name, table in used.items():
-        if name in NOT_CANDIDATES or name not in EFFECTS:
-            continue
-        key = _key(model, name)
-        for p in EFFECTS[name].params:
+        key = view.keys[name]
+        inert = cls.inert_params(table)
+        for p in cls.params:
             path = f"effects.{key}.{p.name}"
-            if path in fitted:
+            if path in fitted or p.name in inert and not p.numerical:
                 continue
-            if p.name in NUMERICAL:
+            if p.numerical:
                 skipped.append({"name": f"parameter:{path}", "reason": "a numerical setting"})
-            elif p.name == "Jm" and table.get("law", "neo_hookean") != "gent" and name in (
-                    "skin", "fascia"):
-                continue  # inert under the Neo-Hookean law; the strain-stiffening option covers it
-            elif p.name == "thickness":
-                skipped.append({"name": f"parameter:{path}", "reason": "membrane stiffness "
-                                "depends on E x thickness; E is scored"})
-            elif name == "regions" or name == "ligaments" and p.name == "area":
-                skipped.append({"name": f"parameter:{path}", "reason": "covered by E"
-                                if p.name == "area" else "scored through its E parameters"})
+            elif p.unscored:
+                skipped.append({"name": f"parameter:{path}", "reason": p.unscored})
             else:
                 cand = _parameter(path, table.get(p.name, p.default), _bounds(p), p)
                 if float(table.get(p.name, p.default)) <= 0:  # switched off (e.g. friction 0)
                     cand = replace(cand, effects={key: {**table, p.name: cand.start[path]}},
                                    amplitude=(0.0, 1.0))
                 out.append(cand)
+    overridden = {s for n in view.used if n in EFFECTS for s in EFFECTS[n].sets_materials}
     for region, mat in model["materials"].items():
         cls = MATERIALS.get(mat.get("name"))
         for p in getattr(cls, "params", ()):
             path = f"materials.{region}.{p.name}"
-            if path in fitted or p.name == "nu":
+            if path in fitted or p.name == "nu" or f"{region}.{p.name}" in overridden:
                 continue
-            if "regions" in used and region.startswith(("breast_", "gland_")) and p.name == "E":
-                continue  # the regions effect sets these moduli
             lo, hi = _bounds(p)
             v = float(mat.get(p.name, p.default))
             out.append(_parameter(path, v, (max(lo, v / 20), min(hi, v * 20)), p))
-    skipped.append({"name": "materials.*.nu", "reason": "nearly incompressible tissue by design "
-                    "(0.49, the paper's value)"})
-    return out, skipped
+    return out
 
 
 def _parameter(path: str, value: float, bounds: tuple[float, float], p) -> Candidate:

@@ -46,8 +46,8 @@ class TruthModel:
     materials : {region code: {"name": "neo_hookean" | "gent", "E": kPa, "nu": -, ["Jm"]}}
         Codes of ``mechanics.mesh.REGIONS`` (1 breast_left, 2 muscle, 3 breast_right).
     effects : {effect name: keyword dict}
-        Registered effects other than gravity (added per position). ``"sliding"`` or
-        ``"tied"`` make the simulation split the breast-muscle interface.
+        Registered effects other than gravity (added per position). An effect that declares
+        ``split_interface`` makes the simulation split the breast-muscle interface.
     mesh_size_mm : float
         Target tet edge of the truth mesh, mm (finer than a fitted model's 8-10 mm).
     name : str
@@ -66,23 +66,35 @@ class TruthModel:
             {str(k): dict(v or {}) for k, v in dict(self.effects).items()}))
         if not self.mesh_size_mm > 0:
             raise ValueError(f"truth model: mesh_size_mm must be > 0, got {self.mesh_size_mm}")
-        if "gravity" in self.effects:
-            raise ValueError("truth model: gravity is set per position; remove it from effects")
-        if "sliding" in self.effects and "tied" in self.effects:
-            raise ValueError("truth model: 'sliding' and 'tied' exclude each other")
+        from mechanics.effects import exclusions
+        from mechanics.effects.gravity import Gravity
+
+        if Gravity.name in self.effects:
+            raise ValueError(f"truth model: {Gravity.name} is set per position; remove it from "
+                             "effects")
+        for a, b in exclusions(self.effects):
+            raise ValueError(f"truth model: {a!r} and {b!r} exclude each other")
 
     @property
     def has_gland(self) -> bool:
         """True when the truth gives glandular tissue its own modulus (mesh keeps gland):
-        through the ``regions`` effect or a material for region gland_left or gland_right."""
-        if any(REGIONS[k] in self.materials for k in ("gland_left", "gland_right")):
+        through an effect that needs the gland regions (``mesh_regions``) or a material for
+        region gland_left or gland_right."""
+        gland = ("gland_left", "gland_right")
+        if any(REGIONS[k] in self.materials for k in gland):
             return True
-        return bool(dict(self.effects.get("regions", {"gland": False})).get("gland", True))
+        from mechanics.effects import EFFECTS, effect_name
+
+        return any(set(gland) & EFFECTS[effect_name(k)].mesh_regions(dict(v))
+                   for k, v in self.effects.items() if effect_name(k) in EFFECTS)
 
     @property
     def split_interface(self) -> bool:
-        """True when the interface nodes must be duplicated (sliding or tied contact)."""
-        return "sliding" in self.effects or "tied" in self.effects
+        """True when the interface nodes must be duplicated (an effect declares
+        ``split_interface``)."""
+        from mechanics.effects import needs_split_interface
+
+        return needs_split_interface(self.effects)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dict (region codes as strings)."""
@@ -167,10 +179,14 @@ def with_effects(model: TruthModel, effects: dict[str, dict | None], *,
             eff.pop(k, None)
         else:
             eff[k] = dict(v)
-    if "tied" in effects and effects["tied"] is not None:
-        eff.pop("sliding", None)
-    if "sliding" in effects and effects["sliding"] is not None:
-        eff.pop("tied", None)
+    from mechanics.effects import exclusions
+
+    added = {k for k, v in effects.items() if v is not None}
+    for a, b in exclusions(list(eff)):  # an added effect replaces those it excludes
+        if a in added:
+            eff.pop(b, None)
+        if b in added:
+            eff.pop(a, None)
     mats = {k: dict(v) for k, v in model.materials.items()}
     mats.update({int(k): dict(v) for k, v in (materials or {}).items()})
     return replace(model, effects=eff, materials=mats, name=name or model.name)

@@ -15,8 +15,8 @@ from typing import Any
 from breastmodel.config import ConfigError, check_keys, load_toml
 
 __all__ = [
-    "DEFAULTS", "FIT_PARAMETER_KEYS", "get_param", "load_run_config", "materials_by_code",
-    "resolve_config", "set_params",
+    "DEFAULTS", "FIT_PARAMETER_KEYS", "check_model", "get_param", "load_run_config",
+    "materials_by_code", "resolve_config", "set_params",
 ]
 
 _SEGMENT_KEYS = {"labels", "gland", "skin_level", "levelset_iterations", "curvature",
@@ -97,10 +97,9 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     Raises
     ------
     ConfigError
-        Unknown table or key, unknown region name, bad stress-free method or fit settings.
+        Unknown table or key, a bad model table (:func:`check_model`), bad stress-free
+        method or fit settings.
     """
-    from mechanics.mesh import REGIONS
-
     raw = dict(raw or {})
     check_keys(raw, _TABLE_KEYS, where=where)
     for name, table in raw.items():
@@ -108,19 +107,7 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
             raise ConfigError(f"{where}: [{name}] must be a table")
         check_keys(table, _TABLE_KEYS[name], where=f"{where} [{name}]")
     cfg = _merge(DEFAULTS, raw)
-    model = cfg["model"]
-    for region, mat in model["materials"].items():
-        if region not in REGIONS:
-            raise ConfigError(f"{where} [model.materials]: unknown region {region!r}; "
-                              f"known: {sorted(REGIONS)}")
-        if not isinstance(mat, Mapping) or "name" not in mat:
-            raise ConfigError(f"{where} [model.materials.{region}] needs a 'name'")
-    for eff, kw in model["effects"].items():
-        if eff.split(":", 1)[0] == "gravity":
-            raise ConfigError(f"{where} [model.effects.gravity]: gravity is set per position "
-                              "by the pipeline; use model.density and model.g")
-        if not isinstance(kw, Mapping | list):
-            raise ConfigError(f"{where} [model.effects.{eff}] must be a table")
+    check_model(cfg["model"], where=where)
     sf = cfg["stress_free"]
     if sf["method"] not in ("inverse", "paper", "none"):
         raise ConfigError(f"{where} [stress_free] method must be 'inverse', 'paper' or "
@@ -149,6 +136,91 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     if fit["enabled"] and not fit["parameters"]:
         raise ConfigError(f"{where} [fit] enabled = true needs [fit.parameters]")
     return cfg
+
+
+def _number(value: Any, param, where: str) -> None:
+    """Refuse a parameter value that is not a number or lies outside the parameter's bounds
+    (the message gives its unit)."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ConfigError(f"{where} must be a number ({param.unit}), got {value!r}")
+    try:
+        param.check(value, where)
+    except ValueError:
+        raise ConfigError(f"{where} = {value} {param.unit} is outside [{param.lower}, "
+                          f"{param.upper}] {param.unit}") from None
+
+
+def _check_effect(key: str, table: Any, where: str, label: str) -> None:
+    from mechanics.effects import EFFECTS, effect_name
+    from mechanics.effects.gravity import Gravity
+
+    name = effect_name(key)
+    at = f"{where} [model.effects.{label}]"
+    if name == Gravity.name:
+        raise ConfigError(f"{at}: gravity is set per position by the pipeline; use "
+                          "model.density and model.g")
+    if name not in EFFECTS:
+        raise ConfigError(f"{at}: unknown effect {name!r}; known: {sorted(EFFECTS)}")
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{at} must be a table")
+    cls = EFFECTS[name]
+    params = {p.name: p for p in cls.params}
+    options = {o.name: o for o in cls.option_specs}
+    for k, v in table.items():
+        if k in params:
+            _number(v, params[k], f"{at} {k}")
+        elif k not in options:
+            raise ConfigError(f"{at}: unknown key {k!r}; {name} takes "
+                              f"{sorted(params) + sorted(options)}")
+        elif options[k].types and not isinstance(v, options[k].types):
+            raise ConfigError(f"{at} {k} must be of type "
+                              f"{' or '.join(t.__name__ for t in options[k].types)}, "
+                              f"got {v!r}")
+        else:
+            try:
+                options[k].check(v, name)
+            except ValueError as exc:
+                raise ConfigError(f"{at} {k}: {exc}") from None
+
+
+def check_model(model: Mapping[str, Any], *, where: str = "run config") -> None:
+    """Validate a ``[model]`` table against the registries before any stage runs: regions,
+    materials and their parameters (numbers within bounds), effects, their parameters and
+    options (declared names, types and choices). Messages name ``where`` (the file), the
+    table and the key.
+
+    Raises
+    ------
+    ConfigError
+        The first mistake found.
+    """
+    from mechanics.materials import MATERIALS
+    from mechanics.mesh import REGIONS
+
+    for region, mat in model["materials"].items():
+        at = f"{where} [model.materials.{region}]"
+        if region not in REGIONS:
+            raise ConfigError(f"{where} [model.materials]: unknown region {region!r}; "
+                              f"known: {sorted(REGIONS)}")
+        if not isinstance(mat, Mapping) or "name" not in mat:
+            raise ConfigError(f"{at} needs a 'name'")
+        cls = MATERIALS.get(mat["name"])
+        if cls is None:
+            raise ConfigError(f"{at}: unknown material {mat['name']!r}; known: "
+                              f"{sorted(MATERIALS)}")
+        params = {p.name: p for p in cls.params}
+        for k, v in mat.items():
+            if k == "name":
+                continue
+            if k not in params:
+                raise ConfigError(f"{at}: unknown key {k!r}; {mat['name']} takes "
+                                  f"{sorted(params)}")
+            _number(v, params[k], f"{at} {k}")
+    for key, table in model["effects"].items():
+        if not isinstance(table, list):
+            _check_effect(key, table, where, key)
+        for i, t in enumerate(table if isinstance(table, list) else []):
+            _check_effect(key, t, where, f"{key} #{i + 1}")
 
 
 def load_run_config(path: str | Path | None, *, drop: Sequence[str] = ()) -> dict:

@@ -50,6 +50,8 @@ from typing import Any
 
 import numpy as np
 
+from imaging.labels import LABEL_NAMES, LABEL_RGB
+
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["LABEL_TABLE", "export_images", "write_colour_tables", "write_febio",
@@ -61,8 +63,7 @@ _SUMMARY_KEYS = ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm", "median_mm",
                  "converged", "load_reached", "max_displacement_mm", "error")
 
 #: label code -> (name, RGB 0-255), as drawn by :mod:`imaging.views`
-LABEL_TABLE = {0: ("background", (0, 0, 0)), 1: ("breast", (255, 127, 14)),
-               2: ("muscle", (214, 39, 40)), 3: ("gland", (44, 160, 44))}
+LABEL_TABLE = {code: (name, LABEL_RGB[code]) for code, name in LABEL_NAMES.items()}
 
 
 def _copy(src: Path, dst: Path) -> None:

@@ -50,16 +50,20 @@ class Problem:
     _split: dict = field(default_factory=dict, repr=False)  # the split mesh, made once
 
 
-#: Effects that need the breast-muscle interface split into two node layers.
-INTERFACE_EFFECTS = ("sliding", "tied")
-
-
 def model_mesh(problem: Problem, model: Mapping[str, Any]):
-    """The mesh a model runs on: the problem's conforming mesh, or (when the model has a
-    ``sliding`` or ``tied`` interface) the same mesh with the interface nodes duplicated,
+    """The mesh a model runs on: the problem's conforming mesh, or (when an effect of the
+    model declares ``split_interface``) the same mesh with the interface nodes duplicated,
     the breast copies appended after the original nodes at the same positions."""
-    names = {str(k).split(":", 1)[0] for k in model["effects"]}
-    if not names & set(INTERFACE_EFFECTS) or "interface_muscle" in problem.mesh.face_sets:
+    from mechanics.effects import needs_split_interface
+
+    if not needs_split_interface(model["effects"]):
+        return problem.mesh
+    return _split_mesh(problem)
+
+
+def _split_mesh(problem: Problem):
+    """The problem's mesh with its interface split (made once per problem)."""
+    if "interface_muscle" in problem.mesh.face_sets:
         return problem.mesh
     if "mesh" not in problem._split:
         from mechanics.effects._interface import split_interface
@@ -85,7 +89,7 @@ def mesh_of(problem: Problem, n_nodes: int):
     """The problem mesh (conforming or split) that has ``n_nodes`` nodes."""
     if n_nodes == problem.mesh.n_nodes:
         return problem.mesh
-    split = model_mesh(problem, {"effects": {"sliding": {}}})
+    split = _split_mesh(problem)
     if n_nodes != split.n_nodes:
         raise ValueError(f"pipeline: {n_nodes} node positions fit neither the problem mesh "
                          f"({problem.mesh.n_nodes} nodes) nor its split ({split.n_nodes})")
@@ -137,11 +141,12 @@ def position_model(problem: Problem, model: Mapping[str, Any], position: str):
         g m/s^2, formulation)
     position : position name (its gravity comes from the problem)
     """
+    from mechanics.effects.gravity import Gravity
     from mechanics.model import build_model
 
     mesh = model_mesh(problem, model)
     effects = {k: v for k, v in model["effects"].items()}
-    effects["gravity"] = {"direction": tuple(float(v) for v in problem.gravity[position]),
+    effects[Gravity.name] = {"direction": tuple(float(v) for v in problem.gravity[position]),
                           "density": float(model["density"]), "g": float(model["g"])}
     mats = materials_by_code(model, np.unique(mesh.region))
     return build_model(mesh, mats, effects, formulation=model["formulation"])

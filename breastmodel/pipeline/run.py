@@ -25,6 +25,7 @@ import numpy as np
 
 from breastmodel.cache import Cache, StageKey, stage_key
 from breastmodel.errors import StageError
+from imaging.labels import BREAST, BREAST_TISSUE, MUSCLE
 
 log = logging.getLogger("breastmodel.pipeline")
 
@@ -112,12 +113,12 @@ def _segment(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path],
                 raise StageError("segment", str(exc), vol) from None
             labels = read_volume(d / f"{position}_labels.nii.gz")
         a = sitk.GetArrayViewFromImage(labels)
-        if not np.isin(a, (1, 3)).any():
+        if not np.isin(a, BREAST_TISSUE).any():
             raise StageError("segment", f"position {position!r}: the segmentation has no "
-                             "breast tissue (label 1)", vol)
-        if not (a == 2).any():
+                             f"breast tissue (label {BREAST})", vol)
+        if not (a == MUSCLE).any():
             raise StageError("segment", f"position {position!r}: the segmentation has no "
-                             "muscle / chest wall (label 2)", vol)
+                             f"muscle / chest wall (label {MUSCLE})", vol)
     return fn
 
 

@@ -87,10 +87,14 @@ def truth_breast_E(truth_dir: Path) -> dict[str, float]:
     for code, side in (("1", "left"), ("3", "right")):
         if code in mats and "E" in mats[code]:
             out[side] = float(mats[code]["E"])
-    eff = (tm.get("effects") or {}).get("regions")
-    if eff:  # the truth's regions effect sets each side's modulus
-        out["left"] = float(eff.get("E_left", out.get("left", np.nan)))
-        out["right"] = float(eff.get("E_right", out.get("right", np.nan)))
+    from mechanics.effects import EFFECTS, effect_name
+
+    for key, table in (tm.get("effects") or {}).items():  # effects that set a side's modulus
+        cls = EFFECTS.get(effect_name(key))
+        values = cls.material_values(dict(table or {})) if cls is not None else {}
+        for side in ("left", "right"):
+            if f"breast_{side}.E" in values:
+                out[side] = float(values[f"breast_{side}.E"])
     return out
 
 

@@ -14,7 +14,13 @@ from mechanics.effects.base import (
     Effect,
     MaterialModifier,
     MaterialSpec,
+    ModelView,
+    Option,
     Param,
+    Variant,
+    effect_name,
+    exclusions,
+    needs_split_interface,
     register_effect,
 )
 
@@ -23,6 +29,7 @@ for _m in pkgutil.iter_modules(__path__):
         importlib.import_module(f"{__name__}.{_m.name}")
 
 __all__ = [
-    "EFFECTS", "Constraint", "Contribution", "Effect", "MaterialModifier", "MaterialSpec", "Param",
-    "register_effect",
+    "EFFECTS", "Constraint", "Contribution", "Effect", "MaterialModifier", "MaterialSpec",
+    "ModelView", "Option", "Param", "Variant", "effect_name", "exclusions",
+    "needs_split_interface", "register_effect",
 ]

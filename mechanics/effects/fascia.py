@@ -4,7 +4,12 @@
 from __future__ import annotations
 
 from mechanics.effects.base import Param, register_effect
-from mechanics.effects.membrane import JM_MEMBRANE, MembraneEffect
+from mechanics.effects.membrane import (
+    JM_MEMBRANE,
+    THICKNESS_UNSCORED,
+    MembraneEffect,
+    membrane_options,
+)
 
 
 @register_effect
@@ -17,11 +22,11 @@ class Fascia(MembraneEffect):
 
     name = "fascia"
     face_set = "interface"
-    wrinkling = "none"
+    option_specs = membrane_options("none")
     requires = ("face_sets:interface",)
     doc = "hyperelastic fascia membrane (0.1 mm) between breast and pectoral muscle"
     params = (
         Param("E", "kPa", 120.0, 80.0, 250.0, "Young's modulus of the fascia"),
-        Param("thickness", "mm", 0.1, 0.01, 2.0, "fascia thickness"),
+        Param("thickness", "mm", 0.1, 0.01, 2.0, "fascia thickness", unscored=THICKNESS_UNSCORED),
         JM_MEMBRANE,
     )

@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+from types import MappingProxyType
+
 import numpy as np
 
-from mechanics.effects.base import Constraint, Effect, constraints_to_febio, register_effect
+from mechanics.effects.base import (
+    Constraint,
+    Effect,
+    Option,
+    constraints_to_febio,
+    register_effect,
+)
 
 
 @register_effect
@@ -19,16 +27,20 @@ class Fixed(Effect):
 
     name = "fixed"
     doc = "Dirichlet support or prescribed displacement on a node set"
+    not_diagnosed = "the chest-wall boundary condition every model has"
+    example = MappingProxyType({"node_set": "fixed"})
+    option_specs = (
+        Option("node_set", None, "name of the node set", types=(str,)),
+        Option("nodes", None, "node indices", types=(list, tuple)),
+        Option("components", (0, 1, 2), "fixed components", types=(list, tuple)),
+        Option("values", None, "prescribed displacements, mm", types=(int, float, list, tuple)),
+    )
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
-        node_set = opts.pop("node_set", None)
-        nodes = opts.pop("nodes", None)
-        comps = tuple(int(c) for c in opts.pop("components", (0, 1, 2)))
-        vals = opts.pop("values", None)
-        if opts:
-            raise ValueError(f"effect 'fixed': unknown option(s) {sorted(opts)}")
+        opts = self.options
+        node_set, nodes, vals = opts["node_set"], opts["nodes"], opts["values"]
+        comps = tuple(int(c) for c in opts["components"])
         if (node_set is None) == (nodes is None):
             raise ValueError("effect 'fixed': give exactly one of node_set or nodes")
         if node_set is not None:

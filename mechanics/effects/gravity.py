@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects.base import Contribution, Effect, Param, register_effect
+from mechanics.effects.base import Contribution, Effect, Option, Param, register_effect
 from mechanics.kernels import reference_geometry
 
 
@@ -24,18 +24,25 @@ class Gravity(Effect):
     )
     doc = "weight of the tissue along a gravity direction"
     load_only = True  # adds no stiffness (dead load)
+    not_diagnosed = "set per position from the registration"
+    option_specs = (
+        Option("direction", (0.0, 0.0, -1.0), "gravity direction in the mesh frame",
+               types=(list, tuple)),
+        Option("regions", None, "region codes that carry weight (default all)",
+               types=(list, tuple)),
+        Option("density_by_region", None, "{region code: kg/m^3} overriding density",
+               types=(dict,)),
+    )
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        d = np.asarray(self.options.pop("direction", (0.0, 0.0, -1.0)), float).reshape(-1)
+        d = np.asarray(self.options["direction"], float).reshape(-1)
         if d.shape != (3,) or not np.all(np.isfinite(d)) or np.linalg.norm(d) == 0:
             raise ValueError(f"effect 'gravity': direction must be a non-zero 3-vector, got {d}")
         self.direction = d / np.linalg.norm(d)
-        self.regions = self.options.pop("regions", None)
+        self.regions = self.options["regions"]
         self.density_by_region = {int(k): float(v) for k, v in
-                                  dict(self.options.pop("density_by_region", {}) or {}).items()}
-        if self.options:
-            raise ValueError(f"effect 'gravity': unknown option(s) {sorted(self.options)}")
+                                  dict(self.options["density_by_region"] or {}).items()}
         self._cache = None
 
     def nodal_weight(self, X: np.ndarray) -> np.ndarray:

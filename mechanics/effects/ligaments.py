@@ -14,7 +14,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects.base import Contribution, Effect, Param, register_effect
+from mechanics.effects.base import (
+    Contribution,
+    Effect,
+    Option,
+    Param,
+    Variant,
+    bounds,
+    register_effect,
+)
 from mechanics.effects.membrane import scatter
 
 GROUPS = ("inframammary", "medial", "lateral")
@@ -80,20 +88,23 @@ class Ligaments(Effect):
     doc = "tension-only suspensory ligaments (inframammary, medial, lateral) as cables"
     params = (
         Param("E", "kPa", 100.0, 1.0, 1000.0, "Young's modulus of the ligaments"),
-        Param("area", "mm^2", 1.0, 0.01, 100.0, "cross-section of one ligament cable"),
+        Param("area", "mm^2", 1.0, 0.01, 100.0, "cross-section of one ligament cable",
+              unscored="covered by E"),
+    )
+    option_specs = (
+        Option("groups", None, f"subset of {GROUPS} (default: every group the mesh has)",
+               types=(list, tuple)),
+        Option("law", "linear", "cable law", LAWS, (str,)),
+        Option("E_by_group", None, "{group: kPa} overriding E", types=(dict,)),
     )
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
+        opts = self.options
         present = tuple(g for g in GROUPS if f"ligament_{g}" in mesh.node_pairs)
-        groups = tuple(opts.pop("groups", present))
-        self.law = str(opts.pop("law", "linear"))
-        e_by = {str(k): float(v) for k, v in dict(opts.pop("E_by_group", {}) or {}).items()}
-        if opts:
-            raise ValueError(f"effect 'ligaments': unknown option(s) {sorted(opts)}")
-        if self.law not in LAWS:
-            raise ValueError(f"effect 'ligaments': law must be one of {LAWS}, got {self.law!r}")
+        groups = tuple(present if opts["groups"] is None else opts["groups"])
+        self.law = str(opts["law"])
+        e_by = {str(k): float(v) for k, v in dict(opts["E_by_group"] or {}).items()}
         bad = [g for g in list(groups) + list(e_by) if g not in GROUPS]
         if bad:
             raise ValueError(f"effect 'ligaments': unknown group(s) {bad}; known {GROUPS}")
@@ -114,6 +125,33 @@ class Ligaments(Effect):
         self.E = np.concatenate(E) if E else np.zeros(0)
         if len(self.pairs) and (self.pairs.min() < 0 or self.pairs.max() >= mesh.n_nodes):
             raise ValueError("effect 'ligaments': anchor node index out of range")
+
+    @classmethod
+    def _variant(cls, group: str, kind: str, effects, free=None, start=None) -> Variant:
+        return Variant(f"{cls.name}:{group}", f"{group} suspensory ligaments (tension-only)",
+                       effects, free or {}, (0.0, 2.0) if free else (1.0, 1.0),
+                       start=start or {}, kind=kind)
+
+    @classmethod
+    def variants(cls, view):
+        """Each group the mesh has anchors for, alone, its E re-fitted."""
+        have = (sorted(view.node_pairs) if view.node_pairs is not None
+                else [f"ligament_{g}" for g in GROUPS])
+        E = cls.params[0]
+        path = f"effects.{cls.name}.E"
+        return [cls._variant(g, "effect", {cls.name: {"groups": [g]}}, {path: bounds(E)},
+                             {path: E.default})
+                for g in GROUPS if f"ligament_{g}" in have]
+
+    @classmethod
+    def option_variants(cls, key, table, view):
+        """Each group the mesh has anchors for that the model leaves out, added."""
+        if view.node_pairs is None:
+            return []
+        have = set(table.get("groups") or [
+            g for g in GROUPS if f"ligament_{g}" in view.node_pairs])
+        return [cls._variant(g, "option", {key: {**table, "groups": sorted(have | {g})}})
+                for g in GROUPS if g not in have and f"ligament_{g}" in view.node_pairs]
 
     def lengths(self, X: np.ndarray) -> np.ndarray:
         """(P,) reference lengths, mm; zero-length anchors are an error."""

@@ -37,13 +37,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects.base import Contribution, Effect, Param
+from mechanics.effects.base import Contribution, Effect, Option, Param, Variant, bounds
 
 #: Poisson ratio used to turn E into the shear modulus, as in the paper's bulk law.
 NU_MEMBRANE = 0.49
 LAWS = ("neo_hookean", "gent")
 WRINKLING = ("tension_field", "none")
 TAUT_MARGIN = 1e-10
+#: Gent limit at which the diagnosis probes a membrane's strain stiffening.
+JM_PROBE = 0.5
+#: Why a membrane's thickness is not scored on its own.
+THICKNESS_UNSCORED = "membrane stiffness depends on E x thickness; E is scored"
+
+
+def membrane_options(wrinkling: str) -> tuple[Option, ...]:
+    """The options of a membrane effect whose default wrinkling is ``wrinkling``."""
+    return (Option("law", "neo_hookean", "membrane law", LAWS, (str,)),
+            Option("wrinkling", wrinkling, "tension-field relaxation or the plain law",
+                   WRINKLING, (str,)))
 
 
 def reference_triangles(X: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -216,28 +227,37 @@ def scatter(n_nodes: int, conn: np.ndarray, fe: np.ndarray, Ke: np.ndarray | Non
 class MembraneEffect(Effect):
     """Base of the membrane effects: a face set, a thickness, a modulus and a law.
 
-    Subclasses set ``name``, ``face_set``, ``params`` (``E`` kPa, ``thickness`` mm, ``Jm``).
-    Options ``law``: "neo_hookean" (default) or "gent"; ``wrinkling``: "tension_field"
-    (no compressive stress) or "none"; the class attribute ``wrinkling`` is the default.
+    Subclasses set ``name``, ``face_set``, ``params`` (``E`` kPa, ``thickness`` mm, ``Jm``)
+    and ``option_specs`` (:func:`membrane_options`: ``law`` "neo_hookean" or "gent";
+    ``wrinkling`` "tension_field" (no compressive stress) or "none").
     """
 
     face_set: str = ""
-    wrinkling: str = "tension_field"
+    option_specs = membrane_options("tension_field")
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
-        self.law = str(opts.pop("law", "neo_hookean"))
-        if self.law not in LAWS:
-            raise ValueError(f"effect {self.name!r}: law must be one of {LAWS}, got {self.law!r}")
-        self.wrinkling = str(opts.pop("wrinkling", self.wrinkling))
-        if self.wrinkling not in WRINKLING:
-            raise ValueError(f"effect {self.name!r}: wrinkling must be one of {WRINKLING}, "
-                             f"got {self.wrinkling!r}")
-        if opts:
-            raise ValueError(f"effect {self.name!r}: unknown option(s) {sorted(opts)}")
+        self.law = str(self.options["law"])
+        self.wrinkling = str(self.options["wrinkling"])
         self.tri = np.asarray(mesh.face_sets[self.face_set], np.int64)
         self._ref = None
+
+    @classmethod
+    def inert_params(cls, table):
+        """``Jm`` unless the law is Gent."""
+        return frozenset() if table.get("law", "neo_hookean") == "gent" else frozenset({"Jm"})
+
+    @classmethod
+    def option_variants(cls, key, table, view):
+        """Gent strain stiffening of a Neo-Hookean membrane, probed at ``JM_PROBE``."""
+        if table.get("law", "neo_hookean") == "gent":
+            return []
+        jm = next(p for p in cls.params if p.name == "Jm")
+        path = f"effects.{key}.Jm"
+        return [Variant(f"strain_stiffening:{cls.name}",
+                        f"Gent strain stiffening of the {cls.name} membrane",
+                        {key: {**table, "law": "gent", "Jm": JM_PROBE}}, {path: bounds(jm)},
+                        (0.0, 2.0), start={path: JM_PROBE}, kind="option")]
 
     def _reference(self, X):
         if self._ref is None or self._ref[0] is not X:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from types import MappingProxyType
+
 import numpy as np
 
-from mechanics.effects.base import Contribution, Effect, register_effect
+from mechanics.effects.base import Contribution, Effect, Option, register_effect
 
 
 @register_effect
@@ -17,14 +19,18 @@ class PointLoad(Effect):
     name = "point_load"
     doc = "external nodal forces"
     load_only = True
+    not_diagnosed = "an external load, not a property of the subject"
+    example = MappingProxyType({"node_set": "fixed", "force": (0.0, 0.0, 1.0)})
+    option_specs = (
+        Option("node_set", None, "name of the node set", types=(str,)),
+        Option("nodes", None, "node indices", types=(list, tuple)),
+        Option("force", None, "(3,) or (k, 3) force, mN", types=(list, tuple)),
+    )
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
-        node_set, nodes = opts.pop("node_set", None), opts.pop("nodes", None)
-        force = opts.pop("force", None)
-        if opts:
-            raise ValueError(f"effect 'point_load': unknown option(s) {sorted(opts)}")
+        node_set, nodes = self.options["node_set"], self.options["nodes"]
+        force = self.options["force"]
         if (node_set is None) == (nodes is None) or force is None:
             raise ValueError("effect 'point_load': give force and exactly one of node_set, nodes")
         if node_set is not None:

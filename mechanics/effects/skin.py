@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 from mechanics.effects.base import Param, register_effect
-from mechanics.effects.membrane import JM_MEMBRANE, MembraneEffect
+from mechanics.effects.membrane import (
+    JM_MEMBRANE,
+    THICKNESS_UNSCORED,
+    MembraneEffect,
+    membrane_options,
+)
 
 
 @register_effect
@@ -17,9 +22,10 @@ class Skin(MembraneEffect):
     name = "skin"
     face_set = "skin"
     requires = ("face_sets:skin",)
+    option_specs = membrane_options("tension_field")
     doc = "hyperelastic skin membrane (2 mm) on the breast surface"
     params = (
         Param("E", "kPa", 4.0, 1.0, 20.0, "Young's modulus of the skin"),
-        Param("thickness", "mm", 2.0, 0.1, 10.0, "skin thickness"),
+        Param("thickness", "mm", 2.0, 0.1, 10.0, "skin thickness", unscored=THICKNESS_UNSCORED),
         JM_MEMBRANE,
     )

@@ -76,7 +76,7 @@ from mechanics.effects._contact import (
     signed_gap,
     summed_blocks,
 )
-from mechanics.effects.base import Contribution, Effect, Param, register_effect
+from mechanics.effects.base import Contribution, Effect, Option, Param, Variant, register_effect
 
 log = logging.getLogger("mechanics.effects.sliding")
 
@@ -216,28 +216,44 @@ class Sliding(_InterfaceContact):
     doc = "breast slides on the muscle with Coulomb friction and never separates from it"
     params = (
         Param("friction", "-", 0.1, 0.0, 2.0, "Coulomb friction coefficient k"),
-        Param("penalty", "kPa/mm", 100.0, 1e-3, 1e7, "normal penalty stiffness per area"),
+        Param("penalty", "kPa/mm", 100.0, 1e-3, 1e7, "normal penalty stiffness per area",
+              numerical=True),
         Param("tangential_penalty", "kPa/mm", 1.0, 1e-3, 1e7,
-              "tangential (stick) penalty stiffness per area"),
+              "tangential (stick) penalty stiffness per area", numerical=True),
         Param("smoothing", "-", 0.1, 0.0, 1.0,
-              "width of the rounded stick-slip transition, fraction of the friction bound"),
+              "width of the rounded stick-slip transition, fraction of the friction bound",
+              numerical=True),
         Param("pressure_smoothing", "kPa", 0.0, 0.0, 10.0,
-              "width of the rounded friction bound at zero contact pressure"),
+              "width of the rounded friction bound at zero contact pressure", numerical=True),
     )
+    option_specs = (
+        Option("method", "penalty", "normal enforcement", METHODS, (str,)),
+        Option("search_candidates", 8, "muscle triangles searched per point", types=(int,)),
+        Option("points", 3, "contact points per slave triangle (0: nodes)", types=(int,)),
+        Option("edge_extension", 1.0, "extension of the muscle surface past its edges",
+               types=(int, float)),
+        Option("hold_flipping", True, "hold pairings that flip back across a crease",
+               types=(bool,)),
+        Option("path_steps", 1, "load steps of the friction history", types=(int,)),
+    )
+    split_interface = True
+    excludes = ("tied",)
+
+    @classmethod
+    def variants(cls, view):
+        """Sliding switched on (an on/off change), replacing the effects it excludes."""
+        change = {cls.name: {}, **{view.keys[n]: None for n in cls.excluded_by(view.used)}}
+        return [Variant(cls.name, cls.doc or cls.name, change)]
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
-        self.method = str(opts.pop("method", "penalty"))
-        self.k_search = int(opts.pop("search_candidates", 8))
-        self.points = int(opts.pop("points", 3))
-        self.edge_extension = float(opts.pop("edge_extension", 1.0))
-        self.hold_flipping = bool(opts.pop("hold_flipping", True))
-        self.path_steps = int(opts.pop("path_steps", 1))
-        if opts:
-            raise ValueError(f"effect 'sliding': unknown option(s) {sorted(opts)}")
-        if self.method not in METHODS:
-            raise ValueError(f"effect 'sliding': method must be one of {METHODS}")
+        opts = self.options
+        self.method = str(opts["method"])
+        self.k_search = int(opts["search_candidates"])
+        self.points = int(opts["points"])
+        self.edge_extension = float(opts["edge_extension"])
+        self.hold_flipping = bool(opts["hold_flipping"])
+        self.path_steps = int(opts["path_steps"])
         if self.path_steps < 1:
             raise ValueError(f"effect 'sliding': path_steps must be >= 1, got {self.path_steps}")
         if not self.edge_extension >= 0.0:

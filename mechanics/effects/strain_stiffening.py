@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from types import MappingProxyType
 
-from mechanics.effects.base import MaterialModifier, MaterialSpec, Param, register_effect
+from mechanics.effects.base import (
+    MaterialModifier,
+    MaterialSpec,
+    Option,
+    Param,
+    register_effect,
+)
 from mechanics.mesh import REGIONS
 
 
@@ -32,15 +38,18 @@ class StrainStiffening(MaterialModifier):
     name = "strain_stiffening"
     doc = "Gent strain stiffening (limit Jm) of the bulk tissue, per region"
     params = (Param("Jm", "-", 10.0, 0.05, 1e4, "Gent limit of I1bar - 3"),)
+    option_specs = (
+        Option("regions", ("breast_left", "breast_right", "gland_left", "gland_right"),
+               "region names or codes that stiffen", types=(list, tuple)),
+        Option("Jm_by_region", None, "{region: Jm} overriding Jm", types=(dict,)),
+    )
+    #: The default Jm = 10 is the "barely on" end (nearly Neo-Hookean at breast strains).
+    probe = MappingProxyType({"Jm": 0.3})
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
-        regions = opts.pop("regions", ("breast_left", "breast_right", "gland_left",
-                                       "gland_right"))
-        jm_by = dict(opts.pop("Jm_by_region", {}) or {})
-        if opts:
-            raise ValueError(f"effect 'strain_stiffening': unknown option(s) {sorted(opts)}")
+        regions = self.options["regions"]
+        jm_by = dict(self.options["Jm_by_region"] or {})
         self.regions = region_codes(regions, self.name)
         self.jm = {r: self.values["Jm"] for r in self.regions}
         for k, v in jm_by.items():

@@ -6,7 +6,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects.base import Constraint, Effect, constraints_to_febio, register_effect
+from mechanics.effects.base import (
+    Constraint,
+    Effect,
+    Option,
+    constraints_to_febio,
+    register_effect,
+)
 
 
 @register_effect
@@ -30,17 +36,22 @@ class Supports(Effect):
     name = "supports"
     doc = "paper's Dirichlet supports: posterior muscle fixed, fascia ends in z, skin ends in y"
     requires = ()
+    option_specs = (
+        Option("muscle", True, "fix the posterior muscle nodes", types=(bool,)),
+        Option("fascia_ends", True, "fix the fascia ends in one component", types=(bool,)),
+        Option("skin_ends", True, "fix the skin ends in one component", types=(bool,)),
+        Option("skin_lateral", False, "fix the lateral skin ends", types=(bool,)),
+        Option("fascia_component", 2, "component of the fascia ends", types=(int,)),
+        Option("skin_component", 1, "component of the skin ends", types=(int,)),
+        Option("lateral_component", 0, "component of the lateral skin ends", types=(int,)),
+    )
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        opts = dict(self.options)
-        use = {k: bool(opts.pop(k, True)) for k in ("muscle", "fascia_ends", "skin_ends")}
-        use["skin_lateral"] = bool(opts.pop("skin_lateral", False))
-        comp = {k: int(opts.pop(k, d)) for k, d in (("fascia_component", 2),
-                                                    ("skin_component", 1),
-                                                    ("lateral_component", 0))}
-        if opts:
-            raise ValueError(f"effect 'supports': unknown option(s) {sorted(opts)}")
+        opts = self.options
+        use = {k: bool(opts[k]) for k in ("muscle", "fascia_ends", "skin_ends", "skin_lateral")}
+        comp = {k: int(opts[k]) for k in ("fascia_component", "skin_component",
+                                          "lateral_component")}
         if any(c not in (0, 1, 2) for c in comp.values()):
             raise ValueError(f"effect 'supports': components must be 0, 1 or 2, got {comp}")
         wanted = []

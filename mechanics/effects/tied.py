@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from mechanics.effects._contact import closest_facets, coo_blocks, nodal_areas, node_dofs
-from mechanics.effects.base import Contribution, Effect, Param, register_effect
+from mechanics.effects.base import Contribution, Effect, Param, Variant, register_effect
 
 
 @register_effect
@@ -23,12 +23,25 @@ class Tied(Effect):
     name = "tied"
     doc = "breast bonded to the muscle at the interface (no sliding)"
     requires = ("face_sets:interface",)
-    params = (Param("penalty", "kPa/mm", 1000.0, 1e-3, 1e7, "tie stiffness per area"),)
+    params = (Param("penalty", "kPa/mm", 1000.0, 1e-3, 1e7, "tie stiffness per area",
+                    numerical=True),)
+    split_interface = True
+    excludes = ("sliding",)
+
+    @classmethod
+    def variants(cls, view):
+        """The interface bonded instead of the effect it excludes; nothing to score when the
+        model has none (its conforming interface is bonded already)."""
+        other = cls.excluded_by(view.used)
+        if not other:
+            return [Variant(cls.name, skip="the model's interface is already bonded "
+                            "(conforming mesh)")]
+        change = {view.keys[n]: None for n in other}
+        return [Variant(cls.name, "bonded breast-muscle interface instead of "
+                        + " and ".join(other), {**change, cls.name: {}})]
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        if self.options:
-            raise ValueError(f"effect 'tied': unknown option(s) {sorted(self.options)}")
         self.split = "interface_muscle" in mesh.face_sets
         if self.split:
             self.slave_faces = np.asarray(mesh.face_sets["interface"], np.int64)

@@ -116,3 +116,15 @@ def test_family_maker_remakes_a_subject_whose_spec_changed(tmp_path, monkeypatch
     assert len(made) == 1
     _, _, info = family_maker(size="small", snr=33.0)("small-004", folder)  # another spec
     assert len(made) == 2 and made[1]["snr"] == 33.0 and info["spec"]["snr"] == 33.0
+
+
+def test_truth_breast_moduli_come_from_the_materials_or_an_effect_that_sets_them(tmp_path):
+    from breastmodel.phantom.truth_model import preset
+    from breastmodel.validation.figures import truth_breast_E
+
+    (tmp_path / "truth_model.json").write_text(preset("no_skin").to_json())
+    plain = truth_breast_E(tmp_path)
+    assert plain["left"] == plain["right"] == preset("no_skin").materials[1]["E"]
+    (tmp_path / "truth_model.json").write_text(preset("asymmetric").to_json())
+    regions = preset("asymmetric").effects["regions"]
+    assert truth_breast_E(tmp_path) == {"left": regions["E_left"], "right": regions["E_right"]}
