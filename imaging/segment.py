@@ -384,6 +384,11 @@ def segment_volume(
         except SegmentationError as exc:
             failed.append(f"as {kind}: {exc}")
             continue
+        agree = _dice(r["muscle_start"], r["muscle"])
+        if failed and agree < 0.9:  # a second guess must hold up on its own
+            failed.append(f"as {kind}: {STAGE}: {name}: the muscle's active contour and its "
+                          f"start agree only to Dice {agree:.2f} (< 0.9)")
+            continue
         notes = tried + [f"segmented as {kind} after: {f}" for f in failed]
         break
     else:
@@ -690,7 +695,7 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
     lv["thorax"] = _interior_median(a, thorax, lv["fat"]) if thorax.any() else lv["fat"]
     # the muscle's lower edge: midpoint of the muscle and its dark neighbours
     t_low = 0.5 * lv["muscle"] + 0.25 * (lv["fat"] + lv["thorax"])
-    lv.update(t_air=t_air, t_dark=t_low, t_bright=float("inf"), otsu_low=thresholds[0],
+    lv.update(t_air=t_air, t_dark=t_low, t_mid=t_mid, otsu_low=thresholds[0],
               otsu_high=thresholds[1])
     body_start = body.copy()
     air = levelset_refine(pre, air, lower=-np.inf, upper=t_air,
