@@ -32,19 +32,22 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
 from imaging.fiducials import body_without_markers, detect_markers
-from imaging.preprocess import check_volume, preprocess
+from imaging.preprocess import body_box, check_volume, n4_correct, preprocess
 
 STAGE = "segment"
 log = logging.getLogger(__name__)
 
 BACKGROUND, BREAST, MUSCLE, GLAND = 0, 1, 2, 3
 
+#: Coarsest voxel (mm) a level set may run on when ``levelset_shrink`` > 1.
+MAX_COARSE_MM = 2.0
 #: Smallest accepted contrast-to-noise ratio between body (fat) and background.
 MIN_CNR = 5.0
 #: Fewest 4^3-voxel blocks of pure (>= 90 %) background, and of pure tissue, in a body MRI.
@@ -235,6 +238,7 @@ def levelset_refine(
     iterations: int,
     curvature: float = 0.5,
     margin_vox: int = 4,
+    shrink: int = 1,
 ) -> np.ndarray:
     """Evolve ``mask`` with a threshold level set: it grows where ``lower <= feature <=
     upper`` and shrinks elsewhere, with curvature regularisation, so the boundary settles at
@@ -254,6 +258,12 @@ def levelset_refine(
         Weight of the curvature (smoothing) term relative to the propagation term.
     margin_vox : int
         Voxels added around the bounding box.
+    shrink : int
+        Run the level set on a grid ``shrink`` times coarser (averaged voxels), then settle
+        the boundary voxels of the result (one voxel either side) at full resolution by the
+        thresholds: the level set's cost grows with its surface's voxels, so 2 costs about a
+        quarter. Only where the coarse voxels stay within :data:`MAX_COARSE_MM` (thin
+        layers, skin and muscle, need that resolution).
 
     Returns
     -------
@@ -276,6 +286,10 @@ def levelset_refine(
     # The sparse-field level set builds its narrow band from the zero crossing alone, so a
     # +-0.5 binary image starts it exactly where a signed distance map + 0.5 would, at a
     # fraction of the cost.
+    if (shrink > 1 and min(sub_feat.GetSize()) >= 8 * shrink
+            and shrink * max(feature.GetSpacing()) <= MAX_COARSE_MM):
+        return _levelset_shrunk(sub_feat, sub_mask, mask, sl, lower=lower, upper=upper,
+                                iterations=iterations, curvature=curvature, shrink=shrink)
     init = sitk.Cast(sub_mask, sitk.sitkFloat32) - 0.5
     ls = sitk.ThresholdSegmentationLevelSetImageFilter()
     ls.SetLowerThreshold(float(lower))
@@ -291,6 +305,33 @@ def levelset_refine(
     return res
 
 
+def _levelset_shrunk(sub_feat, sub_mask, mask, sl, *, lower, upper, iterations, curvature,
+                     shrink):
+    """:func:`levelset_refine` on a ``shrink`` times coarser grid, its boundary settled at
+    full resolution by the thresholds."""
+    f = sitk.BinShrink(sub_feat, [int(shrink)] * 3)
+    m = sitk.BinShrink(sitk.Cast(sub_mask, sitk.sitkFloat32), [int(shrink)] * 3)
+    ls = sitk.ThresholdSegmentationLevelSetImageFilter()
+    ls.SetLowerThreshold(float(lower))
+    ls.SetUpperThreshold(float(upper))
+    ls.SetMaximumRMSError(0.01)
+    ls.SetNumberOfIterations(int(iterations))
+    ls.SetCurvatureScaling(float(curvature))
+    ls.SetPropagationScaling(1.0)
+    ls.ReverseExpansionDirectionOn()
+    out = ls.Execute(m - 0.5, f)
+    # back to the full grid: the coarse level set's zero crossing, linearly interpolated
+    up = sitk.Resample(out, sub_feat, sitk.Transform(), sitk.sitkLinear, -1.0,
+                       sitk.sitkFloat32)
+    region = sitk.GetArrayViewFromImage(up) > 0
+    band = ndimage.binary_dilation(region) & ~ndimage.binary_erosion(region)
+    a = sitk.GetArrayViewFromImage(sub_feat)
+    region = region & ~band | band & (a >= lower) & (a <= upper)
+    res = mask.copy()
+    res[sl] = region
+    return res
+
+
 def segment_volume(
     img: sitk.Image,
     *,
@@ -303,12 +344,15 @@ def segment_volume(
     denoise_method: str = "gradient",
     skin_level: float = 0.7,
     levelset_iterations: int = 30,
+    levelset_shrink: int = 1,
     curvature: float = 0.5,
     marker_diameter_mm: float = 4.0,
     min_region_mm3: float = 500.0,
     muscle_min_mm: float = 3.0,
     name: str = "volume",
     contrast: str = "auto",
+    crop: bool = True,
+    n4_cache: str | Path | None = None,
 ) -> SegmentationResult:
     """Segment breast tissue, muscle (and optionally gland) in one MRI volume.
 
@@ -326,6 +370,9 @@ def segment_volume(
         Skin intensity as a fraction of fat; the air boundary sits at half of it.
     levelset_iterations : int
         Active-contour iterations per region (0: thresholds and morphology only).
+    levelset_shrink : int
+        The active contours run on a grid this many times coarser, their boundaries then
+        settled at full resolution (:func:`levelset_refine`); 1: full resolution.
     curvature : float
         Curvature weight of the level sets.
     marker_diameter_mm : float
@@ -340,6 +387,12 @@ def segment_volume(
     contrast : {"auto", "fat_bright", "fat_suppressed"}
         Fat bright (T1/T2-weighted) or fat suppressed; ``"auto"`` detects it
         (:func:`detect_contrast`) and says so in the notes.
+    crop : bool
+        Work on the body's box (:func:`imaging.preprocess.body_box`); the label map is
+        pasted back on the input grid. ``preprocessed`` is then the cropped volume.
+    n4_cache : path, optional
+        Folder of bias corrections shared with later stages (see
+        :func:`imaging.preprocess.n4_correct`).
 
     Returns
     -------
@@ -348,9 +401,19 @@ def segment_volume(
     if contrast != "auto" and contrast not in CONTRASTS:
         raise SegmentationError(f"{STAGE}: {name}: contrast must be 'auto' or one of "
                                 f"{CONTRASTS}, got {contrast!r}")
+    notes: list[str] = []
     try:
         check_volume(img, name=name, stage=STAGE)
-        pre = preprocess(img, n4=n4, n4_shrink=n4_shrink, isotropic_mm=isotropic_mm,
+        box = body_box(img) if crop else None
+        work = img
+        if box is not None:  # everything below scales with the voxels it sees
+            # N4 on the whole volume: the same correction serves the registration (cached)
+            corrected = n4_correct(img, shrink=n4_shrink, cache=n4_cache) if n4 else img
+            work = sitk.RegionOfInterest(corrected, box[1], box[0])
+            n4 = False
+            notes.append(f"cropped to the body's box: index {box[0]}, size {box[1]} voxels")
+        pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
+                         isotropic_mm=isotropic_mm,
                          denoise_iterations=denoise_iterations, denoise_method=denoise_method,
                          name=name)
     except SegmentationError:
@@ -360,7 +423,6 @@ def segment_volume(
     a = sitk.GetArrayFromImage(pre)
     sp = np.asarray(pre.GetSpacing(), float)[::-1]  # (z, y, x)
     vox_mm3 = float(np.prod(sp))
-    notes: list[str] = []
 
     if contrast == "auto":
         kind, why = detect_contrast(a, sp)
@@ -372,7 +434,7 @@ def segment_volume(
         order = [contrast]
     opts = dict(seeds=seeds, levelset_iterations=levelset_iterations, curvature=curvature,
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
-                muscle_min_mm=muscle_min_mm, name=name)
+                muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     failed: list[str] = []
     for kind in order:
         tried = list(notes)
@@ -434,8 +496,12 @@ def segment_volume(
     out = sitk.GetImageFromArray(labels)
     out.CopyInformation(pre)
     if isotropic_mm is not None:
-        out = sitk.Resample(out, img, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
+        out = sitk.Resample(out, work, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
                             sitk.sitkUInt8)
+    if box is not None:
+        full = sitk.Image(img.GetSize(), sitk.sitkUInt8)
+        full.CopyInformation(img)
+        out = sitk.Paste(full, out, out.GetSize(), [0, 0, 0], box[0])
     conf = segmentation_confidence(
         cnr=r["cnr"], body=(r["body_start"], body), muscle=(r["muscle_start"], muscle),
         breast_ml=float(np.count_nonzero((labels == BREAST) | (labels == GLAND)))
@@ -447,7 +513,8 @@ def segment_volume(
 
 def _fat_bright_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: list, *,
                         seeds, skin_level, levelset_iterations, curvature,
-                        marker_diameter_mm, min_region_mm3, muscle_min_mm, name) -> dict:
+                        marker_diameter_mm, min_region_mm3, muscle_min_mm, name,
+                        levelset_shrink=1) -> dict:
     """Air, thorax interior, body and muscle of a fat-bright (T1/T2-weighted) volume
     (steps 2-5 of the module's method)."""
     vox_mm3 = float(np.prod(sp))
@@ -545,7 +612,8 @@ def _fat_bright_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: l
         feature = sitk.GetImageFromArray(a * scale)
         feature.CopyInformation(pre)
     air = levelset_refine(feature, air, lower=-np.inf, upper=t_air,
-                          iterations=levelset_iterations, curvature=curvature)
+                          iterations=levelset_iterations, curvature=curvature,
+                          shrink=levelset_shrink)
     air |= marker_mask
     # Keep the air that touches the original air (the level set may open small pockets).
     body = ~air
@@ -576,7 +644,8 @@ def _fat_bright_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: l
     muscle_start = muscle.copy()
     # Active contour on the muscle: boundaries settle at the thorax and fat midpoints.
     muscle = levelset_refine(pre, muscle, lower=t_dark, upper=t_bright,
-                             iterations=levelset_iterations, curvature=curvature)
+                             iterations=levelset_iterations, curvature=curvature,
+                          shrink=levelset_shrink)
     muscle &= body & ~marker_mask
     if not muscle.any():
         raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
@@ -592,7 +661,7 @@ def _fat_bright_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: l
 
 def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: list, *,
                             seeds, levelset_iterations, curvature, marker_diameter_mm,
-                            min_region_mm3, muscle_min_mm, name) -> dict:
+                            min_region_mm3, muscle_min_mm, name, levelset_shrink=1) -> dict:
     """Air, thorax interior, body and muscle of a fat-suppressed volume.
 
     Fat is dark (but above the background noise); muscle, gland and skin are mid-grey to
@@ -699,7 +768,8 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
               otsu_high=thresholds[1])
     body_start = body.copy()
     air = levelset_refine(pre, air, lower=-np.inf, upper=t_air,
-                          iterations=levelset_iterations, curvature=curvature)
+                          iterations=levelset_iterations, curvature=curvature,
+                          shrink=levelset_shrink)
     air |= _surface_partial_volume(a, ~air, lv["air"])
     blab, bn = _components(~air)
     if bn == 0:
@@ -713,7 +783,8 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
     muscle_start = muscle.copy()
     reach = ndimage.binary_dilation(muscle, structure=_ball(muscle_min_mm, sp))
     muscle = levelset_refine(pre, muscle, lower=t_low, upper=np.inf,
-                             iterations=levelset_iterations, curvature=curvature)
+                             iterations=levelset_iterations, curvature=curvature,
+                          shrink=levelset_shrink)
     muscle &= body & reach & ~marker_mask
     if not muscle.any():
         raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
