@@ -164,6 +164,7 @@ def n4_correct(
         Float32 corrected volume on the input grid.
     """
     key = None
+    img = sitk.Cast(img, sitk.sitkFloat32)  # one key for an integer volume and its float copy
     if mask is None:
         key = image_key(img, "n4", int(shrink), tuple(int(i) for i in iterations))
         if key in _N4_MEMORY:

@@ -125,6 +125,12 @@ def test_n4_cache_returns_the_same_correction_across_processes(tmp_path):
     # other options are another entry
     n4_correct(biased, iterations=(5,), cache=tmp_path)
     assert len(list(tmp_path.glob("n4_*.nrrd"))) == 2
+    # the segmentation corrects the volume as read (integers), the registration's
+    # preprocessing a float32 copy: one entry serves both
+    as_read = sitk.Cast(sitk.Round(biased), sitk.sitkInt16)
+    n4_correct(as_read, iterations=(10,), cache=tmp_path)
+    n4_correct(sitk.Cast(as_read, sitk.sitkFloat32), iterations=(10,), cache=tmp_path)
+    assert len(list(tmp_path.glob("n4_*.nrrd"))) == 3
 
 
 def test_body_box_keeps_mid_grey_tissue_below_the_otsu_threshold():
