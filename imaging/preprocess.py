@@ -298,12 +298,20 @@ def background_level(values: np.ndarray) -> float:
     return float(0.5 * (edges[k] + edges[k + 1]))
 
 
-def normalise(img: sitk.Image) -> sitk.Image:
+def background_of(img: sitk.Image) -> float:
+    """Median outside the Otsu foreground: :func:`normalise`'s background level."""
+    f = sitk.Cast(img, sitk.sitkFloat32)
+    fg = sitk.GetArrayFromImage(foreground_mask(f)).astype(bool)  # a copy: the mask is a temporary
+    a = sitk.GetArrayViewFromImage(f)
+    return float(np.median(a[~fg])) if (~fg).any() else float(a.min())
+
+
+def normalise(img: sitk.Image, *, background: float | None = None) -> sitk.Image:
     """Map the background level to 0 and the bright-tissue (fat) mode to 1 (float32).
 
-    Background = the mode outside the Otsu foreground (:func:`background_level`), so the
-    scale ignores the amount of air and of dark tissue (a volume cropped to the body keeps
-    its levels);
+    Background = median outside the Otsu foreground, so the scale ignores the amount of air
+    (``background`` overrides it: a volume cropped to the body passes its whole volume's, as
+    the crop holds less air and the median would move towards the dark tissues);
     the fat mode ignores small bright objects (markers) that a percentile would catch.
     """
     f = sitk.Cast(img, sitk.sitkFloat32)
@@ -311,7 +319,7 @@ def normalise(img: sitk.Image) -> sitk.Image:
     fg = sitk.GetArrayFromImage(foreground_mask(f)).astype(bool)
     if not fg.any() or fg.all():
         raise ValueError(f"{STAGE}: cannot normalise a volume without foreground and background")
-    lo = background_level(a[~fg])
+    lo = float(np.median(a[~fg])) if background is None else float(background)
     hi = bright_mode(a[fg])
     if hi <= lo:
         raise ValueError(f"{STAGE}: volume has no contrast (foreground {hi} <= background {lo})")
@@ -329,6 +337,7 @@ def preprocess(
     normalise_intensity: bool = True,
     name: str = "volume",
     n4_cache: str | Path | None = None,
+    background: float | None = None,
 ) -> sitk.Image:
     """Run the enabled steps in order: check, N4, resample, denoise, normalise.
 
@@ -352,6 +361,8 @@ def preprocess(
         Name used in error messages.
     n4_cache : path, optional
         Folder where bias corrections are kept and reused (see :func:`n4_correct`).
+    background : float, optional
+        Background level for the normalisation (see :func:`normalise`).
 
     Returns
     -------
@@ -368,7 +379,7 @@ def preprocess(
         out = denoise(out, iterations=denoise_iterations, method=denoise_method)
     if normalise_intensity:
         try:
-            out = normalise(out)
+            out = normalise(out, background=background)
         except ValueError as exc:  # name the file: "empty volume" alone is not actionable
             raise ValueError(f"{exc} ({name})") from None
     return out

@@ -39,7 +39,13 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from imaging.fiducials import body_without_markers, detect_markers
-from imaging.preprocess import body_box, check_volume, n4_correct, preprocess
+from imaging.preprocess import (
+    background_of,
+    body_box,
+    check_volume,
+    n4_correct,
+    preprocess,
+)
 
 STAGE = "segment"
 log = logging.getLogger(__name__)
@@ -405,14 +411,16 @@ def segment_volume(
     try:
         check_volume(img, name=name, stage=STAGE)
         box = body_box(img) if crop else None
-        work = img
+        work, background = img, None
         if box is not None:  # everything below scales with the voxels it sees
             # N4 on the whole volume: the same correction serves the registration (cached)
             corrected = n4_correct(img, shrink=n4_shrink, cache=n4_cache) if n4 else img
+            background = background_of(corrected)  # the whole volume's, as uncropped
             work = sitk.RegionOfInterest(corrected, box[1], box[0])
             n4 = False
             notes.append(f"cropped to the body's box: index {box[0]}, size {box[1]} voxels")
         pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
+                         background=background,
                          isotropic_mm=isotropic_mm,
                          denoise_iterations=denoise_iterations, denoise_method=denoise_method,
                          name=name)
