@@ -42,11 +42,21 @@ def body_without_markers(fg: np.ndarray, *, spacing: np.ndarray, diameter_mm: fl
     """
     r = 0.5 * diameter_mm + 1.0
     rad = [max(1, int(np.ceil(r / s))) for s in spacing]
-    m = sitk.GetImageFromArray(fg.astype(np.uint8))
+    out = np.zeros(fg.shape, bool)
+    if not fg.any():
+        return out
+    # Only the foreground's box (plus the ball) can change: open that part alone.
+    pad = np.asarray(rad[::-1]) + 1
+    ext = [np.flatnonzero(fg.any(axis=tuple(j for j in range(3) if j != i))) for i in range(3)]
+    lo = np.maximum([e[0] - p for e, p in zip(ext, pad)], 0)
+    hi = np.minimum([e[-1] + p + 1 for e, p in zip(ext, pad)], fg.shape)
+    sl = tuple(slice(a, b) for a, b in zip(lo, hi))
+    m = sitk.GetImageFromArray(fg[sl].astype(np.uint8))
     m.SetSpacing(tuple(float(s) for s in spacing))
     opened = sitk.BinaryMorphologicalOpening(m, rad, sitk.sitkBall, 0, 1)
     cc = sitk.RelabelComponent(sitk.ConnectedComponent(opened), sortByObjectSize=True)
-    return sitk.GetArrayFromImage(cc) == 1
+    out[sl] = sitk.GetArrayViewFromImage(cc) == 1
+    return out
 
 
 def _sphere_model(p, pts, spacing2):

@@ -5,6 +5,11 @@ modified); geometry (origin, spacing, direction) survives each step except resam
 
 from __future__ import annotations
 
+import hashlib
+import os
+from collections import OrderedDict
+from pathlib import Path
+
 import numpy as np
 import SimpleITK as sitk
 
@@ -66,12 +71,74 @@ def foreground_mask(img: sitk.Image) -> sitk.Image:
     return sitk.Cast(f > otsu.GetThreshold(), sitk.sitkUInt8)
 
 
+def body_box(img: sitk.Image, *, margin_mm: float = 10.0, min_share: float = 0.002,
+             max_fraction: float = 0.9) -> tuple[list[int], list[int]] | None:
+    """Index and size (x, y, z voxels) of the box around the foreground plus ``margin_mm``,
+    or None when that box holds more than ``max_fraction`` of the volume (cropping would save
+    little).
+
+    The foreground is what rises a third of the way from the background level to the Otsu
+    threshold (mid-grey tissue such as a muscle meeting air is below that threshold on a
+    fat-bright scan); a plane of the box counts when at least
+    ``min_share`` of it is foreground, so isolated noise voxels do not stretch the box. The
+    work of every later step scales with the voxels it sees: on a 256^3 torso phantom the
+    box is 60 % of the volume.
+    """
+    f = sitk.Cast(img, sitk.sitkFloat32)
+    small = sitk.BinShrink(f, [2 if n >= 8 else 1 for n in f.GetSize()])
+    otsu = sitk.OtsuThresholdImageFilter()
+    otsu.Execute(small)
+    t = float(otsu.GetThreshold())
+    a = sitk.GetArrayViewFromImage(small)
+    below = a[a <= t]
+    if below.size == 0:
+        return None
+    bg = background_level(below)
+    # A third of the way from the background to the Otsu threshold: mid-grey tissue (a
+    # muscle meeting air, suppressed fat) is below the Otsu threshold, noise is far below.
+    fg = sitk.GetArrayViewFromImage(f) > bg + 0.35 * (t - bg)
+    if not fg.any():
+        return None
+    size_zyx = np.asarray(fg.shape)
+    sp_zyx = np.asarray(img.GetSpacing(), float)[::-1]
+    lo, hi = [], []
+    for ax in range(3):
+        others = tuple(j for j in range(3) if j != ax)
+        count = fg.sum(axis=others)
+        area = int(np.prod(size_zyx[list(others)]))
+        keep = np.flatnonzero(count >= max(1, min_share * area))
+        if keep.size == 0:
+            return None
+        m = int(np.ceil(margin_mm / sp_zyx[ax]))
+        lo.append(max(int(keep[0]) - m, 0))
+        hi.append(min(int(keep[-1]) + m + 1, int(size_zyx[ax])))
+    box = np.asarray(hi) - np.asarray(lo)
+    if np.prod(box) > max_fraction * np.prod(size_zyx) or np.any(box < 8):
+        return None
+    return [int(v) for v in lo[::-1]], [int(v) for v in box[::-1]]
+
+
+#: Bias-corrected volumes of this process, by :func:`image_key` (least recently used out).
+_N4_MEMORY: OrderedDict[str, sitk.Image] = OrderedDict()
+N4_MEMORY_SIZE = 4
+
+
+def image_key(img: sitk.Image, *extra) -> str:
+    """SHA-1 of a volume's voxels, geometry and pixel type, and of ``extra`` (options)."""
+    h = hashlib.sha1()
+    h.update(np.ascontiguousarray(sitk.GetArrayViewFromImage(img)).data)
+    h.update(repr((img.GetSize(), img.GetSpacing(), img.GetOrigin(), img.GetDirection(),
+                   img.GetPixelIDTypeAsString(), extra)).encode())
+    return h.hexdigest()
+
+
 def n4_correct(
     img: sitk.Image,
     *,
     shrink: int = 4,
     iterations: tuple[int, ...] = (50, 40, 30),
     mask: sitk.Image | None = None,
+    cache: str | Path | None = None,
 ) -> sitk.Image:
     """N4 bias-field correction, fitted on a shrunken copy and applied at full resolution.
 
@@ -85,12 +152,51 @@ def n4_correct(
         Maximum iterations per fitting level (one level per entry).
     mask : SimpleITK.Image, optional
         Where to fit the field (default: Otsu foreground).
+    cache : path, optional
+        Folder of corrected volumes keyed by input and options (:func:`image_key`), shared
+        between processes (a stage that runs after the segmentation, e.g. the registration,
+        reuses its correction). Without it, the last few corrections of this process are
+        still reused. The correction is deterministic, so a cached one is the same volume.
 
     Returns
     -------
     SimpleITK.Image
         Float32 corrected volume on the input grid.
     """
+    key = None
+    img = sitk.Cast(img, sitk.sitkFloat32)  # one key for an integer volume and its float copy
+    if mask is None:
+        key = image_key(img, "n4", int(shrink), tuple(int(i) for i in iterations))
+        if key in _N4_MEMORY:
+            _N4_MEMORY.move_to_end(key)
+            return sitk.Image(_N4_MEMORY[key])
+        path = Path(cache) / f"n4_{key}.nrrd" if cache is not None else None
+        if path is not None and path.is_file():
+            try:
+                out = sitk.ReadImage(str(path), sitk.sitkFloat32)
+            except RuntimeError:  # a damaged cache file is recomputed
+                out = None
+            if out is not None and out.GetSize() == img.GetSize():
+                _remember(key, out)
+                return out
+    out = _n4(img, shrink=shrink, iterations=iterations, mask=mask)
+    if key is not None:
+        _remember(key, out)
+        if cache is not None:
+            Path(cache).mkdir(parents=True, exist_ok=True)
+            tmp = Path(cache) / f".n4_{key}.{os.getpid()}.nrrd"
+            sitk.WriteImage(out, str(tmp))
+            os.replace(tmp, Path(cache) / f"n4_{key}.nrrd")
+    return out
+
+
+def _remember(key: str, img: sitk.Image) -> None:
+    _N4_MEMORY[key] = sitk.Image(img)
+    while len(_N4_MEMORY) > N4_MEMORY_SIZE:
+        _N4_MEMORY.popitem(last=False)
+
+
+def _n4(img: sitk.Image, *, shrink: int, iterations, mask) -> sitk.Image:
     f = sitk.Cast(img, sitk.sitkFloat32)
     # N4 works on log intensities: keep them strictly positive.
     f = sitk.Maximum(f, 1e-3)
@@ -177,10 +283,35 @@ def bright_mode(values: np.ndarray) -> float:
     return float(0.5 * (edges[k] + edges[k + 1]))
 
 
-def normalise(img: sitk.Image) -> sitk.Image:
+def background_level(values: np.ndarray) -> float:
+    """Mode of the background class (the voxels below the Otsu threshold): the air level,
+    whatever share of that class the dark tissues (thorax interior, suppressed fat) take."""
+    v = np.asarray(values, float).ravel()
+    if v.size > 2_000_000:
+        v = v[:: v.size // 2_000_000]
+    lo, hi = np.percentile(v, [0.5, 99.5])
+    if hi <= lo:
+        return float(np.median(v))
+    hist, edges = np.histogram(v, bins=256, range=(lo, hi))
+    hist = np.convolve(hist, np.ones(3) / 3, mode="same")
+    k = int(hist.argmax())
+    return float(0.5 * (edges[k] + edges[k + 1]))
+
+
+def background_of(img: sitk.Image) -> float:
+    """Median outside the Otsu foreground: :func:`normalise`'s background level."""
+    f = sitk.Cast(img, sitk.sitkFloat32)
+    fg = sitk.GetArrayFromImage(foreground_mask(f)).astype(bool)  # a copy: the mask is a temporary
+    a = sitk.GetArrayViewFromImage(f)
+    return float(np.median(a[~fg])) if (~fg).any() else float(a.min())
+
+
+def normalise(img: sitk.Image, *, background: float | None = None) -> sitk.Image:
     """Map the background level to 0 and the bright-tissue (fat) mode to 1 (float32).
 
-    Background = median outside the Otsu foreground, so the scale ignores the amount of air;
+    Background = median outside the Otsu foreground, so the scale ignores the amount of air
+    (``background`` overrides it: a volume cropped to the body passes its whole volume's, as
+    the crop holds less air and the median would move towards the dark tissues);
     the fat mode ignores small bright objects (markers) that a percentile would catch.
     """
     f = sitk.Cast(img, sitk.sitkFloat32)
@@ -188,7 +319,7 @@ def normalise(img: sitk.Image) -> sitk.Image:
     fg = sitk.GetArrayFromImage(foreground_mask(f)).astype(bool)
     if not fg.any() or fg.all():
         raise ValueError(f"{STAGE}: cannot normalise a volume without foreground and background")
-    lo = float(np.median(a[~fg]))
+    lo = float(np.median(a[~fg])) if background is None else float(background)
     hi = bright_mode(a[fg])
     if hi <= lo:
         raise ValueError(f"{STAGE}: volume has no contrast (foreground {hi} <= background {lo})")
@@ -205,6 +336,8 @@ def preprocess(
     denoise_method: str = "gradient",
     normalise_intensity: bool = True,
     name: str = "volume",
+    n4_cache: str | Path | None = None,
+    background: float | None = None,
 ) -> sitk.Image:
     """Run the enabled steps in order: check, N4, resample, denoise, normalise.
 
@@ -226,6 +359,10 @@ def preprocess(
         Background -> 0, fat mode -> 1.
     name : str
         Name used in error messages.
+    n4_cache : path, optional
+        Folder where bias corrections are kept and reused (see :func:`n4_correct`).
+    background : float, optional
+        Background level for the normalisation (see :func:`normalise`).
 
     Returns
     -------
@@ -235,14 +372,14 @@ def preprocess(
     check_volume(img, name=name)
     out = sitk.Cast(img, sitk.sitkFloat32)
     if n4:
-        out = n4_correct(out, shrink=n4_shrink)
+        out = n4_correct(out, shrink=n4_shrink, cache=n4_cache)
     if isotropic_mm is not None:
         out = resample_isotropic(out, spacing_mm=isotropic_mm)
     if denoise_iterations > 0:
         out = denoise(out, iterations=denoise_iterations, method=denoise_method)
     if normalise_intensity:
         try:
-            out = normalise(out)
+            out = normalise(out, background=background)
         except ValueError as exc:  # name the file: "empty volume" alone is not actionable
             raise ValueError(f"{exc} ({name})") from None
     return out

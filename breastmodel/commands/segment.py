@@ -23,6 +23,7 @@ Config (TOML, all optional)::
     levelset_iterations = 30
     curvature = 0.5
     marker_diameter_mm = 4.0
+    contrast = "auto"    # or "fat_bright" (T1/T2-weighted), "fat_suppressed"
     positions = ["supine", "prone"]   # default: all
 """
 
@@ -39,7 +40,7 @@ log = logging.getLogger("breastmodel.segment")
 
 PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations", "denoise_method"}
 SEGMENT_KEYS = {"gland", "skin_level", "levelset_iterations", "curvature",
-                "marker_diameter_mm", "min_region_mm3", "positions"}
+                "marker_diameter_mm", "min_region_mm3", "positions", "contrast"}
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -157,6 +158,7 @@ def segment_position(
         "seeds": [{"label": s.label, "point_mm": list(s.point)} for s in seeds],
         "notes": list(res.notes),
         "confidence": res.confidence,
+        "contrast": res.contrast,
     }
     if truth is not None:
         tpath = Path(truth) / f"{position}_labels.nii.gz"

@@ -20,7 +20,7 @@ __all__ = [
 ]
 
 _SEGMENT_KEYS = {"labels", "gland", "skin_level", "levelset_iterations", "curvature",
-                 "marker_diameter_mm", "min_region_mm3"}
+                 "marker_diameter_mm", "min_region_mm3", "contrast"}
 _PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations", "denoise_method"}
 _REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
                   "sampling", "mask_margin_mm", "marker_diameter_mm", "seed",

@@ -5,6 +5,8 @@ import pytest
 import SimpleITK as sitk
 
 from imaging.preprocess import (
+    _N4_MEMORY,
+    body_box,
     check_volume,
     denoise,
     n4_correct,
@@ -107,3 +109,38 @@ def test_preprocess_leaves_input_untouched_and_validates():
         denoise(img, method="median")
     with pytest.raises(ValueError, match="preprocess: bad.nii is 2-D"):
         preprocess(sitk.Image(8, 8, sitk.sitkFloat32), name="bad.nii")
+
+
+def test_n4_cache_returns_the_same_correction_across_processes(tmp_path):
+    img, _ = _block()
+    ramp = np.linspace(0.7, 1.3, 56, dtype=np.float32)[None, None, :]
+    biased = sitk.GetImageFromArray(sitk.GetArrayFromImage(img) * ramp + 1.0)
+    biased.CopyInformation(img)
+    first = n4_correct(biased, iterations=(10,), cache=tmp_path)
+    files = list(tmp_path.glob("n4_*.nrrd"))
+    assert len(files) == 1  # one file per input and options
+    _N4_MEMORY.clear()  # as a new process would: only the folder remains
+    again = n4_correct(biased, iterations=(10,), cache=tmp_path)
+    assert np.array_equal(sitk.GetArrayViewFromImage(first), sitk.GetArrayViewFromImage(again))
+    # other options are another entry
+    n4_correct(biased, iterations=(5,), cache=tmp_path)
+    assert len(list(tmp_path.glob("n4_*.nrrd"))) == 2
+    # the segmentation corrects the volume as read (integers), the registration's
+    # preprocessing a float32 copy: one entry serves both
+    as_read = sitk.Cast(sitk.Round(biased), sitk.sitkInt16)
+    n4_correct(as_read, iterations=(10,), cache=tmp_path)
+    n4_correct(sitk.Cast(as_read, sitk.sitkFloat32), iterations=(10,), cache=tmp_path)
+    assert len(list(tmp_path.glob("n4_*.nrrd"))) == 3
+
+
+def test_body_box_keeps_mid_grey_tissue_below_the_otsu_threshold():
+    # bright block (fat, 100) beside a dim slab (muscle meeting air, 25): Otsu's foreground
+    # is the bright block only; the box must hold the slab too
+    a = np.zeros((60, 60, 60), np.float32)
+    a[20:40, 20:40, 8:30] = 100.0
+    a[20:40, 20:40, 30:50] = 25.0
+    a += np.abs(np.random.default_rng(1).normal(0, 3, a.shape)).astype(np.float32)
+    img = sitk.GetImageFromArray(a)
+    index, size = body_box(img, margin_mm=2.0)
+    assert index[0] <= 8 - 2 and index[0] + size[0] >= 50 + 2
+    assert index[1] <= 18 and index[1] + size[1] >= 42

@@ -71,3 +71,17 @@ def test_qa_views_carry_orientation_letters():
     img.SetDirection((-1, 0, 0, 0, -1, 0, 0, 0, 1))  # RAS-stored volume
     o = view_orientation(img)
     assert o["axial"] == {"left": "L", "right": "R", "top": "P", "bottom": "A"}
+
+
+def test_crop_to_the_body_box_keeps_a_muscle_meeting_air():
+    # On a fat-bright scan a muscle meeting air is below the Otsu threshold (a first box
+    # from Otsu's foreground cut it off: muscle Dice 0.66). The crop only drops air far from
+    # the body, so the labels must match the uncropped run's (to partial-volume noise; the
+    # N4 fit sees a different box).
+    img, truth = render(Slab(), seed=3)
+    cropped = segment_volume(img, name="slab")
+    whole = segment_volume(img, name="slab", crop=False)
+    assert any(n.startswith("cropped to the body's box") for n in cropped.notes)
+    between = dice(cropped.labels, whole.labels)
+    assert between["breast"] >= 0.99 and between["muscle"] >= 0.99, between
+    assert dice(cropped.labels, truth)["muscle"] >= 0.90

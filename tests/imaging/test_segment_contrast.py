@@ -1,0 +1,114 @@
+"""Segmentation of fat-suppressed scans (fat dark; muscle, gland and skin mid-grey to
+bright), where the fat-bright method lost the muscle (Dice 0.00-0.01) on the validation
+family's fat-suppressed subjects.
+
+Volumes: the phantom renderer the family uses (``make_phantom(..., contrast=,
+fat_suppressed=True)``, the same call ``family.make_subject`` makes with a spec's contrast)
+on the small torso anatomy, and a numpy-built muscle slab meeting air (tests/mri_synth.py,
+``"t1_fatsat"``). Bounds: the issue's targets for every scan of the suite (Dice >= 0.95
+breast, >= 0.90 muscle); measured when written: T1 fat-suppressed phantom 0.988 / 0.986,
+T2 0.981 / 0.975, slab 0.951 / 0.984.
+"""
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+from mri_synth import Slab, render
+
+from imaging.io import read_volume
+from imaging.preprocess import preprocess
+from imaging.qa import dice
+from imaging.segment import SegmentationError, detect_contrast, segment_volume
+
+BREAST_MIN, MUSCLE_MIN = 0.95, 0.90  # issue 14's targets on every subject of the suite
+
+
+@pytest.fixture(scope="module")
+def fat_suppressed_phantoms(tmp_path_factory):
+    from breastmodel.phantom import make_phantom
+
+    root = tmp_path_factory.mktemp("fatsat")
+    out = {}
+    for contrast in ("t1", "t2"):
+        subject = root / contrast / "subject"
+        make_phantom(subject, seed=3, small=True, positions=("supine",), progress=False,
+                     max_rotation_deg=15.0, max_translation_mm=30.0, contrast=contrast,
+                     fat_suppressed=True)
+        out[contrast] = (read_volume(subject / "supine.nii.gz"),
+                         read_volume(root / contrast / "subject_truth" / "supine_labels.nii.gz"))
+    return out
+
+
+@pytest.mark.parametrize("contrast", ["t1", "t2"])
+def test_fat_suppressed_phantom_is_detected_and_segmented(fat_suppressed_phantoms, contrast):
+    img, truth = fat_suppressed_phantoms[contrast]
+    res = segment_volume(img, name=f"fatsat_{contrast}.nii.gz")
+    assert res.contrast == "fat_suppressed"
+    assert any(n.startswith("contrast detected: fat_suppressed") for n in res.notes)
+    d = dice(res.labels, truth)
+    assert d["breast"] >= BREAST_MIN, d
+    assert d["muscle"] >= MUSCLE_MIN, d
+
+
+def test_fat_suppressed_slab_meeting_air():
+    img, truth = render(Slab(), seed=3, contrast="t1_fatsat")
+    res = segment_volume(img, gland=True, name="slab_fatsat")
+    assert res.contrast == "fat_suppressed"
+    d = dice(res.labels, truth)
+    assert d["breast"] >= BREAST_MIN, d
+    assert d["muscle"] >= MUSCLE_MIN, d
+
+
+@pytest.mark.parametrize("contrast", ["t2", "t1"])
+def test_fat_bright_slab_is_detected_as_fat_bright(contrast):
+    img, _ = render(Slab(), seed=3, contrast=contrast)
+    pre = preprocess(img)
+    kind, why = detect_contrast(sitk.GetArrayFromImage(pre),
+                                np.asarray(pre.GetSpacing())[::-1])
+    assert kind == "fat_bright", why
+
+
+def test_declared_contrast_is_used_and_checked():
+    img, _ = render(Slab(), seed=3, contrast="t1_fatsat")
+    res = segment_volume(img, contrast="fat_suppressed", levelset_iterations=0, name="s")
+    assert res.contrast == "fat_suppressed"
+    assert not any(n.startswith("contrast detected") for n in res.notes)
+    with pytest.raises(SegmentationError, match="contrast must be"):
+        segment_volume(img, contrast="t3", name="s")
+
+
+def test_no_muscle_with_either_contrast_names_file_and_both_reasons():
+    # a uniform ellipsoid of one tissue in air: a body, but no muscle layer in any contrast
+    n = 60
+    z, y, x = np.mgrid[:n, :n, :n].astype(np.float32)
+    inside = ((x - 30) / 24) ** 2 + ((y - 30) / 20) ** 2 + ((z - 30) / 22) ** 2 <= 1
+    a = np.where(inside, 400.0, 0.0).astype(np.float32)
+    a += np.abs(np.random.default_rng(0).normal(0, 10, a.shape)).astype(np.float32)
+    img = sitk.GetImageFromArray(a)
+    with pytest.raises(SegmentationError) as err:
+        segment_volume(img, name="blob.nii.gz")
+    msg = str(err.value)
+    assert "blob.nii.gz" in msg and "segment" in msg
+    assert "muscle" in msg and "either contrast" in msg
+
+
+def test_validation_family_fat_suppressed_coil_subject(tmp_path):
+    # The suite's subject of seed 0 (small): a breast coil's box, T1 fat-suppressed, 1.5 mm
+    # voxels, SNR 28. Rendered from its spec by the renderer make_subject uses (rigid motion
+    # only: no FE truth is needed to score a segmentation). Measured when written: Dice
+    # 0.967 / 0.957 (supine).
+    from breastmodel.phantom import make_phantom
+    from breastmodel.phantom.family import draw_spec
+
+    spec = draw_spec(0, size="small")
+    assert spec.fat_suppressed and spec.fov == "coil"
+    out = tmp_path / "subject"
+    make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
+                 snr=spec.snr, bias=spec.bias, positions=("supine",), contrast=spec.contrast,
+                 fat_suppressed=True, max_rotation_deg=spec.max_rotation_deg,
+                 max_translation_mm=spec.max_translation_mm, progress=False)
+    res = segment_volume(read_volume(out / "supine.nii.gz"), name="seed0/supine.nii.gz")
+    assert res.contrast == "fat_suppressed"
+    d = dice(res.labels, read_volume(tmp_path / "subject_truth" / "supine_labels.nii.gz"))
+    assert d["breast"] >= BREAST_MIN, d
+    assert d["muscle"] >= MUSCLE_MIN, d
