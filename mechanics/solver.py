@@ -5,7 +5,10 @@ dof (3 * node + component). Dirichlet values of the effects' constraints are sca
 load factor and imposed exactly; the Newton correction solves the reduced saddle-point system
 of :mod:`mechanics.system`. Convergence: ||R_free|| <= tol * max(||R_fixed||, ||R_free,0||),
 i.e. the out-of-balance force relative to the support reactions (or, without supports, to the
-step's initial out-of-balance force).
+step's initial out-of-balance force). Every iteration also records FEBio's displacement and
+energy norms; a step that stalls close to convergence is first retried with exact linear solves
+and then accepted when those norms hold (``SolverOptions.dtol``, ``etol``, ``accept_residual``),
+which the step's log and ``State.stats["convergence"]`` say.
 """
 
 from __future__ import annotations
@@ -70,6 +73,18 @@ class SolverOptions:
         |diag(A)| on the displacement block (Levenberg-Marquardt). Only the Newton matrix
         changes, never the residual, so the converged state is the unregularised
         equilibrium. 0 turns both off (a singular tangent then cuts the step back).
+    dtol, etol : FEBio's displacement and energy norms (its defaults): at every iteration
+        the step's log records ``||eta du|| / ||u - u_step_start||`` (``displacement_norms``)
+        and ``|eta du . R_new| / |du_0 . R_0|`` (``energy_norms``), FEBio's
+        ``FESolidSolver2`` measures. The residual test (``tol``) decides convergence; a
+        step that stagnates (see ``stagnate_after``) even with exact linear solves, or that
+        runs out of iterations, is accepted when both norms are below these and the
+        relative residual is below ``accept_residual``: what FEBio would call converged
+        (it checks no residual by default), with the residual bounded on top. Each
+        accepted step says so in its log (``converged_by``) and the solve's
+        ``stats["convergence"]`` states the criteria and the last step's norms.
+    accept_residual : the largest relative residual of a step accepted by the norms above
+        (0: never accept a step by the norms)
     progress : log every Newton iteration at INFO level
     threads : MKL threads of the PARDISO phases; None: the environment variable
         ``BREASTMODEL_THREADS``, else the cores this process may run on (never the load;
@@ -91,6 +106,9 @@ class SolverOptions:
     stagnate_after: int = 8
     stagnate_above: float = 1e-3
     singular_shift: float = 1e-2
+    dtol: float = 1e-3
+    etol: float = 1e-2
+    accept_residual: float = 1e-3
     progress: bool = False
     threads: int | None = None
 
@@ -256,6 +274,13 @@ class _Newton:
         self.krylov_its = 0
         self.krylov_failed = 0  # reusing solves that did not converge (a factorisation followed)
         self.trace: list[str] = []  # linear solves of the current step: F, K<its>, k<its> (failed)
+        # exact linear solves (a fresh double-precision factorisation at every iteration):
+        # switched on for the rest of a step that stagnates, so that neither a reused factor
+        # (GMRES to the forcing term) nor a single-precision one caps the residual Newton
+        # can reach
+        self.exact = False
+        self.exact_steps = 0
+        self.last_linear_residual = float("nan")  # relative, of the last Newton direction
 
     def _lap(self, phase: str, t0: float, c0: float) -> tuple[float, float]:
         t1, c1 = time.perf_counter(), time.process_time()
@@ -342,6 +367,9 @@ class _Newton:
         below = self.opt.reuse_below
         if below is None:
             below = np.inf if self.symmetric else 0.05
+        fresh = fresh or self.exact
+        if self.exact and getattr(self.lin, "precision", "double") != "double":
+            self.lin.precision = "double"  # PARDISO: this and the later factorisations
         if self.opt.reuse_factor and self.factored and rel < below \
                 and budget >= 3 and not fresh:
             its0 = self.krylov_its
@@ -370,6 +398,7 @@ class _Newton:
             if not np.isfinite(err) or err > 1e-6:
                 self.factored = False
                 raise SingularSystem(f"linear solve residual {err:.2e}")
+            self.last_linear_residual = float(err)
         du = np.zeros(3 * self.n)
         du[self.free] = y[: self.sys.n_free]
         return du
@@ -406,6 +435,7 @@ class _Newton:
         if info != 0 or not np.all(np.isfinite(y)):
             return None
         err = np.linalg.norm(matvec(y) - b) / max(np.linalg.norm(b), 1e-300)
+        self.last_linear_residual = float(err)
         return y if err <= max(eta, 1e-12) * 1.01 else None
 
 
@@ -465,9 +495,10 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
         J = np.linalg.det(ev.F)
         uu = u.reshape(-1, 3).copy()
         p = ev.p_node if nw.anp else ev.p_elem
+        stats = _stats(nw, rss_start, time.perf_counter() - t_start)
+        stats["convergence"] = _convergence(opt, steps)
         return State(uu, converged, float(lam), stress, J, tuple(steps),
-                     time.perf_counter() - t_start, p.copy(), X.copy(),
-                     _stats(nw, rss_start, time.perf_counter() - t_start))
+                     time.perf_counter() - t_start, p.copy(), X.copy(), stats)
 
     # Path points: loads where a path-dependent effect (friction) updates its history; a
     # step never crosses one, so the solution does not depend on how the steps fell.
@@ -508,7 +539,7 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
                 entry["cutback"] = f"predictor invalid: {exc}"
         ok = False
         if ev is not None:
-            ok, u_try, ev, reason = _newton(nw, u_try, new_lam, ev, R, A, entry)
+            ok, u_try, ev, reason = _newton(nw, u_try, new_lam, ev, R, A, entry, u)
             entry["cutback"] = None if ok else reason
         for k in nw.t:
             entry[f"t_{k}"] = nw.t[k] - t_before[k]
@@ -596,6 +627,30 @@ def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
     }
 
 
+def _convergence(opt: SolverOptions, steps: list[dict]) -> dict:
+    """The convergence criteria of a solve and how its steps met them: the residual test
+    (``tol``: ||R_free|| relative to the reactions or the step's first residual) or FEBio's
+    displacement and energy norms (``dtol``, ``etol``) with the residual below
+    ``accept_residual``; the norms of the last converged step."""
+    done = [e for e in steps if e["converged"]]
+    last = done[-1] if done else None
+
+    def final(key):
+        return float(last[key][-1]) if last is not None and last.get(key) else None
+
+    return {
+        "residual_tol": opt.tol, "dtol": opt.dtol, "etol": opt.etol,
+        "accept_residual": opt.accept_residual,
+        "steps_by_residual": sum(e.get("converged_by") == "residual" for e in done),
+        "steps_by_norms": sum(e.get("converged_by") == "norms" for e in done),
+        "steps_with_exact_linear_solves": sum("exact_linear_from" in e for e in steps),
+        "last_step": None if last is None else {
+            "load": float(last["load"]), "converged_by": last.get("converged_by"),
+            "residual": final("residuals"), "displacement": final("displacement_norms"),
+            "energy": final("energy_norms"), "linear_residual": final("linear_residuals")},
+    }
+
+
 def _mesh_hint(mesh) -> str:
     """Why a solve may fail from its very first load step, when the mesh shows it: tets that
     hang on the rest by an edge or a vertex (a free rotation). Computed only on failure."""
@@ -628,11 +683,32 @@ def _progressing(res: list[float]) -> bool:
         and last <= 0.75 * tail[0]
 
 
-def _newton(nw: _Newton, u, lam, ev, R, A, entry):
-    """Newton iterations of one load step. Returns (ok, u, ev, reason)."""
+def _accepted_by_norms(opt: SolverOptions, entry: dict) -> bool:
+    """FEBio's displacement and energy tests on the last iteration, with the relative
+    residual below ``accept_residual`` (see :class:`SolverOptions`)."""
+    d, e = entry["displacement_norms"], entry["energy_norms"]
+    return bool(opt.accept_residual > 0.0 and d and entry["residuals"][-1] <= opt.accept_residual
+                and d[-1] <= opt.dtol and e[-1] <= opt.etol)
+
+
+def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
+    """Newton iterations of one load step from ``u`` (the predictor; ``u_start`` the
+    converged displacement the step starts from). Returns (ok, u, ev, reason)."""
     opt = nw.opt
     rf, rc = nw.norms(R)
     r0 = rf
+    entry["displacement_norms"], entry["energy_norms"] = [], []
+    energy0 = None  # |du_0 . R_0|, FEBio's reference of the energy norm
+    exact_from = None  # iteration from which the step's linear solves are exact
+    nw.exact = False
+
+    def stop_early(reason: str):
+        """A step that stalls: accepted when FEBio's norms say it converged."""
+        if _accepted_by_norms(opt, entry):
+            entry["converged_by"] = "norms"
+            return True, u, ev, None
+        return False, u, ev, reason
+
     for it in range(opt.max_newton + 1):
         ref = max(rc, r0, 1e-300)
         rel = rf / ref
@@ -640,19 +716,28 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
         if opt.progress:
             log.info("  load %.4f iteration %d: relative residual %.3e", lam, it, rel)
         if rel <= opt.tol:
+            entry["converged_by"] = "residual"
             return True, u, ev, None
         if it == opt.max_newton:
-            return False, u, ev, f"no convergence in {opt.max_newton} iterations"
+            return stop_early(f"no convergence in {opt.max_newton} iterations")
         if rf > 1e6 * max(r0, 1e-300) and it > 0:
             return False, u, ev, "residual diverged"
         res = entry["residuals"]
         if opt.stagnate_after and it >= opt.stagnate_after \
+                and (exact_from is None or it >= exact_from + 4) \
                 and rel > 0.1 * res[max(it - 3, 0)] and not _progressing(res) \
                 and (rel > opt.stagnate_above
                      or min(res[it - 4:]) > 0.5 * min(res[:max(it - 4, 1)])):
             # also below stagnate_above when the best residual has not halved in the last
             # 5 iterations (friction states cycling: 20k-tet prone ran 20 iterations at 1e-4).
-            return False, u, ev, f"stagnating (relative residual {rel:.1e} after {it})"
+            reason = f"stagnating (relative residual {rel:.1e} after {it})"
+            if exact_from is not None or rel > opt.stagnate_above:
+                return stop_early(reason)
+            # Close to convergence: first rule out the linear solver (a reused or
+            # single-precision factor) as what holds the residual up.
+            exact_from = entry["exact_linear_from"] = it
+            nw.exact = True
+            nw.exact_steps += 1
         try:
             A_first = None
             if it == 0 and opt.singular_shift > 0.0 and not np.any(u[nw.free]):
@@ -680,6 +765,9 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
             if du is None:
                 return False, u, ev, f"singular tangent ({exc}); is the model constrained?"
         entry["newton"] += 1
+        if energy0 is None:
+            R0_free = R[nw.free].copy()
+        entry.setdefault("linear_residuals", []).append(nw.last_linear_residual)
         s0 = float(R @ du)
         eta, accepted = 1.0, None
         for _ls in range(8):
@@ -712,6 +800,12 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry):
             return False, u, ev, "element inversion (J <= 0) along the Newton direction"
         eta, ev, R, A = accepted
         u = u + eta * du
+        if energy0 is None:
+            energy0 = abs(float(du[nw.free] @ R0_free))
+        step = eta * du[nw.free]
+        total = float(np.linalg.norm((u - u_start)[nw.free]))
+        entry["displacement_norms"].append(float(np.linalg.norm(step)) / max(total, 1e-300))
+        entry["energy_norms"].append(abs(float(step @ R[nw.free])) / max(energy0, 1e-300))
         rf, rc = nw.norms(R)
         if not np.isfinite(rf):
             return False, u, ev, "residual is not finite"
