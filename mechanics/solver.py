@@ -117,11 +117,26 @@ class SolverError(RuntimeError):
     """Divergence after the last cut-back, or an unconstrained model.
 
     ``state`` is the last converged :class:`State` (``converged=False``, its ``load`` < 1).
+    ``verdict`` is None for a numerical failure, else a dict that says why the model has no
+    equilibrium (see :class:`NoEquilibrium`).
     """
+
+    verdict: dict | None = None
 
     def __init__(self, message: str, state: State | None = None):
         super().__init__(message)
         self.state = state
+
+
+class NoEquilibrium(SolverError):
+    """A physical verdict, not a stalled Newton: the model as built has no equilibrium (a
+    rigid-body mode nothing holds, or a load the supports and structures cannot carry).
+    ``verdict``: ``kind`` ("no equilibrium"), ``reason`` and the force budget or the free
+    modes behind it."""
+
+    def __init__(self, message: str, state: State | None = None, *, verdict: dict):
+        super().__init__(message, state)
+        self.verdict = verdict
 
 
 # -- residual and tangent ------------------------------------------------------------------
@@ -207,11 +222,21 @@ def _constraints(model: Model, n_nodes: int, used: np.ndarray):
     return fixed, target
 
 
+#: Names of the rigid-body modes of :func:`_check_rigid_modes`, in its order.
+_MODES = ("translation along x", "translation along y", "translation along z",
+          "rotation about x", "rotation about y", "rotation about z")
+
+
 def _check_rigid_modes(X: np.ndarray, fixed: np.ndarray, used: np.ndarray,
                        model: Model) -> None:
-    """Fail early when supports leave a rigid-body mode free and no effect adds stiffness."""
-    if any(type(e).contribute is not _base_contribute for e in model.effects
-           if not _is_load_only(e)):
+    """Fail before the solve, with a plain verdict, when the supports leave a rigid-body
+    mode free and no effect can hold the body: no support at all (effects that act between
+    parts of the body, such as membranes, cables and contact, cannot hold it), or supports
+    that leave a mode free and effects that only load the body."""
+    orphans = np.repeat(~used, 3)
+    held = fixed & ~orphans
+    if held.any() and any(type(e).contribute is not _base_contribute for e in model.effects
+                          if not _is_load_only(e)):
         return  # an effect may hold the body (springs, contact): rely on the solve check
     Xc = X[used].mean(axis=0)
     d = X - Xc
@@ -222,14 +247,30 @@ def _check_rigid_modes(X: np.ndarray, fixed: np.ndarray, used: np.ndarray,
         modes[k, :, k] = 1.0
         axis = np.eye(3)[k]
         modes[3 + k] = np.cross(axis, d) / scale
-    Rc = modes.reshape(6, -1)[:, fixed & np.repeat(used, 3)]
-    s = np.linalg.svd(Rc @ Rc.T, compute_uv=False) if Rc.size else np.zeros(6)
-    if s.min() <= 1e-10 * max(s.max(), 1.0):
-        raise SolverError(
-            "mechanics: the model is not constrained against rigid-body motion "
-            f"({int(np.sum(s <= 1e-10 * max(s.max(), 1.0)))} free mode(s)); add supports "
-            "(e.g. a 'fixed' effect on a node set)"
-        )
+    Rc = modes.reshape(6, -1)[:, held]
+    G = Rc @ Rc.T if Rc.size else np.zeros((6, 6))
+    w, V = np.linalg.eigh(G)
+    free = w <= 1e-10 * max(w.max(), 1.0)
+    if not free.any():
+        return
+    # name the free modes: the basis modes that the free eigenvectors span
+    span = np.abs(V[:, free]).sum(axis=1)
+    names = [_MODES[i] for i in range(6) if span[i] > 1e-6]
+    supports = {e.name: int(sum(len(np.asarray(c.nodes).reshape(-1)) for c in e.constraints()))
+                for e in model.effects if e.constraints()}
+    where = (", ".join(f"'{k}' holds {v} node(s)" for k, v in supports.items())
+             if supports else "no effect sets a support")
+    empty = [k for k in ("fixed",) if k in model.mesh.node_sets
+             and len(model.mesh.node_sets[k]) == 0]
+    hint = (" The mesh's 'fixed' node set is empty: the meshing stage takes it from the "
+            "chest-wall muscle, and a segmentation without muscle leaves none; segment the "
+            "muscle, or support the body another way." if empty else "")
+    verdict = {"kind": "no equilibrium", "reason": "unsupported",
+               "free_modes": int(free.sum()), "modes": names, "supports": supports}
+    raise NoEquilibrium(
+        f"mechanics: no equilibrium: nothing holds the body against {int(free.sum())} "
+        f"rigid-body mode(s) ({', '.join(names)}): {where}.{hint} Add supports (e.g. a "
+        "'fixed' effect on a node set) before solving.", verdict=verdict)
 
 
 from mechanics.effects.base import Effect  # noqa: E402

@@ -5,7 +5,7 @@ import pytest
 from zoo import hemisphere
 
 from mechanics.model import build_model
-from mechanics.solver import SolverError, SolverOptions, solve
+from mechanics.solver import NoEquilibrium, SolverError, SolverOptions, solve
 
 NH = {1: {"name": "neo_hookean", "E": 1.0, "nu": 0.49}}
 
@@ -53,3 +53,21 @@ def test_a_state_at_the_rounding_floor_is_converged_by_the_norms(hanging):
         solve(hanging, options=SolverOptions(linear_solver="scipy", tol=1e-30,
                                              stagnate_after=4, max_cutbacks=0,
                                              accept_residual=0.0))
+
+
+def test_an_empty_fixed_set_is_a_plain_verdict_before_the_solve():
+    """A segmentation without chest-wall muscle gives the mesh an empty 'fixed' set: the
+    solve stops before its first iteration with a physical verdict that names the six free
+    modes and the cause."""
+    from dataclasses import replace
+
+    mesh = hemisphere(60.0, 4)
+    sets = {**mesh.node_sets, "fixed": np.zeros(0, np.int64)}
+    bare = replace(mesh, node_sets=sets)
+    model = build_model(bare, NH, {"gravity": {"direction": (0, 0, -1)},
+                                   "fixed": {"node_set": "fixed"}})
+    with pytest.raises(NoEquilibrium, match="no equilibrium: nothing holds the body") as info:
+        solve(model, options=SolverOptions(linear_solver="scipy"))
+    assert info.value.verdict["free_modes"] == 6
+    assert "'fixed' node set is empty" in str(info.value)
+    assert info.value.state is None  # no Newton iteration ran
