@@ -48,9 +48,10 @@ from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 BOX = list(itertools.product((0.1, 4.0), (1.0, 20.0), (80.0, 250.0))) + [(2.05, 10.5, 165.0)]
 
 
-def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
+def run_point(mesh, point, position, sliding, options, changes=None, anatomy=None) -> dict:
     E_b, E_s, E_f = point
-    row = {"E_breast": E_b, "E_skin": E_s, "E_fascia": E_f, "position": position}
+    row = {"anatomy": anatomy, "E_breast": E_b, "E_skin": E_s, "E_fascia": E_f,
+           "position": position}
     model = paper_model(mesh, E_b, E_s, E_f, position, sliding=sliding, **(changes or {}))
     t0, c0 = time.perf_counter(), time.process_time()
     try:
@@ -58,10 +59,16 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
         error = None
     except SolverError as exc:
         st, error = exc.state, str(exc)
+        row["verdict"] = getattr(exc, "verdict", None)
     row["seconds"] = time.perf_counter() - t0
     row["cpu_seconds"] = time.process_time() - c0
     row["load_average"] = os.getloadavg()[0]
     row["converged"] = error is None
+    # converged, a physical verdict ("no equilibrium" with its force budget), or stalled
+    row["outcome"] = "converged" if error is None else (
+        "no equilibrium" if row.get("verdict") else "stalled")
+    if st is not None and error is None:
+        row["convergence"] = st.stats.get("convergence")
     row["error"] = error
     if st is not None:
         row["load"] = float(st.load) if error is not None else 1.0
@@ -72,6 +79,14 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
     else:
         row.update(load=0.0, newton_total=None, cutbacks=None, max_displacement_mm=None)
     return row
+
+
+def suite_mesh(path):
+    """A pipeline mesh (.npz of :class:`mechanics.mesh.Mesh`) with its interface split."""
+    from mechanics.effects._interface import split_interface
+    from mechanics.mesh import Mesh
+
+    return split_interface(Mesh.load_npz(path)), {"suite_mesh": str(path)}
 
 
 def sideways_budget(mesh, changes) -> dict:
@@ -110,6 +125,10 @@ def main() -> int:
     ap.add_argument("--stagnate-after", type=int, default=SolverOptions.stagnate_after,
                     help="SolverOptions.stagnate_after (0: no early cut-back)")
     add_mesh_arguments(ap, phantom_size=8.0)
+    ap.add_argument("--suite-mesh", default=None,
+                    help="comma-separated Mesh .npz files made by the pipeline's meshing stage "
+                         "from suite subjects' label maps (bench/results/suite_meshes/); the "
+                         "box runs on each in turn")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects_box.json"))
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
@@ -119,9 +138,13 @@ def main() -> int:
     changes = json.loads(args.changes)
     options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks,
                             stagnate_after=args.stagnate_after)
-    mesh, source = bench_mesh(cells, args.phantom_mesh, args.phantom_size)
+    if args.suite_mesh:
+        meshes = [(Path(p).stem, *suite_mesh(p)) for p in args.suite_mesh.split(",")]
+    else:
+        meshes = [("mesh", *bench_mesh(cells, args.phantom_mesh, args.phantom_size))]
     result = {
-        "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes},
+        "meshes": {name: {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes}
+                   for name, mesh, source in meshes},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         "sliding": sliding,
         "changes": changes,
@@ -130,35 +153,41 @@ def main() -> int:
                    "singular_shift": SolverOptions.singular_shift},
         "points": [],
     }
-    if "tilted" in positions:
-        result["tilted_budget"] = budget = sideways_budget(mesh, changes)
-        print("tilted: sideways weight {sideways_weight_mN:.0f} mN, friction carries at most "
-              "{friction_capacity_mN:.0f} mN, {cables} cables of total EA {cables_EA_total_mN:.0f}"
-              " mN".format(**budget) + (f" would need a mean strain of "
-                                        f"{budget['cable_strain_needed']:.2f}"
-                                        if budget["cable_strain_needed"] else ""))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    print(f"mesh {mesh.n_tets} tets, sliding {sliding}")
-    print(f"{'breast':>6} {'skin':>5} {'fascia':>6} {'position':>8} {'ok':>3} {'load':>6} "
-          f"{'newton':>6} {'cuts':>4} {'u_max':>7} {'s':>6} {'cpu_s':>6}")
-    for i in idx:
-        for position in positions:
-            row = run_point(mesh, BOX[i], position, sliding, options, changes)
-            result["points"].append(row)
-            ok = result["points"]
-            result["converged"] = sum(r["converged"] for r in ok)
-            result["rate"] = result["converged"] / len(ok)
-            tmp = out.with_suffix(".json.tmp")  # after every point: an interrupted run keeps it
-            tmp.write_text(json.dumps(result, indent=1))
-            tmp.replace(out)
-            print(f"{row['E_breast']:6.2f} {row['E_skin']:5.1f} {row['E_fascia']:6.1f} "
-                  f"{position:>8} {'yes' if row['converged'] else 'NO':>3} {row['load']:6.3f} "
-                  f"{row['newton_total'] or 0:6d} {row['cutbacks'] or 0:4d} "
-                  f"{row['max_displacement_mm'] or 0:7.2f} {row['seconds']:6.1f} "
-                  f"{row['cpu_seconds']:6.1f}", flush=True)
+    for name, mesh, _ in meshes:
+        if "tilted" in positions:
+            result.setdefault("tilted_budget", {})[name] = budget = sideways_budget(mesh,
+                                                                                    changes)
+            print(f"{name} tilted: sideways weight {budget['sideways_weight_mN']:.0f} mN, "
+                  f"friction carries at most {budget['friction_capacity_mN']:.0f} mN, "
+                  f"{budget['cables']} cables of total EA {budget['cables_EA_total_mN']:.0f} mN")
+        print(f"{name}: {mesh.n_tets} tets, sliding {sliding}")
+        print(f"{'anatomy':>20} {'breast':>6} {'skin':>5} {'fascia':>6} {'position':>8} "
+              f"{'outcome':>14} {'load':>6} {'newton':>6} {'cuts':>4} {'u_max':>7} {'s':>6} "
+              f"{'cpu_s':>6}")
+        for i in idx:
+            for position in positions:
+                row = run_point(mesh, BOX[i], position, sliding, options, changes, name)
+                result["points"].append(row)
+                ok = result["points"]
+                result["converged"] = sum(r["converged"] for r in ok)
+                result["verdicts"] = sum(r["outcome"] == "no equilibrium" for r in ok)
+                result["stalled"] = sum(r["outcome"] == "stalled" for r in ok)
+                result["rate"] = result["converged"] / len(ok)
+                tmp = out.with_suffix(".json.tmp")  # after every point: a killed run keeps it
+                tmp.write_text(json.dumps(result, indent=1))
+                tmp.replace(out)
+                print(f"{name:>20} {row['E_breast']:6.2f} {row['E_skin']:5.1f} "
+                      f"{row['E_fascia']:6.1f} {position:>8} {row['outcome']:>14} "
+                      f"{row['load']:6.3f} {row['newton_total'] or 0:6d} "
+                      f"{row['cutbacks'] or 0:4d} {row['max_displacement_mm'] or 0:7.2f} "
+                      f"{row['seconds']:6.1f} {row['cpu_seconds']:6.1f}", flush=True)
+                if row["outcome"] != "converged":
+                    print(f"{'':>20} {row['error']}", flush=True)
     print(f"converged {result['converged']} / {len(result['points'])} "
-          f"(rate {result['rate']:.2f})")
+          f"(rate {result['rate']:.2f}), no equilibrium {result['verdicts']}, "
+          f"stalled {result['stalled']}")
     return 0
 
 
