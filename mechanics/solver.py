@@ -522,6 +522,7 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
 
     lam, u = 0.0, np.zeros(n3)
     prev = None  # (lam, u) of the converged step before the last one
+    first = None  # (lam, u) of the first converged step
     last_ev = None
     dlam = 1.0 / max(1, int(opt.initial_steps))
     cutbacks = 0
@@ -600,6 +601,8 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
         if ok:
             prev = (lam, u)
             lam, u, last_ev = new_lam, u_try, ev
+            if first is None:
+                first = (lam, u)
             if entry["newton"] <= opt.grow_below and not just_cut:
                 dlam *= 2.0
             just_cut = False
@@ -612,6 +615,13 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
         dlam *= 0.5
         if dlam < opt.min_step or cutbacks > opt.max_cutbacks:
             st = state(False, last_ev)
+            verdict = _limit_point(nw, first, prev, lam, u)
+            if verdict is not None:
+                raise NoEquilibrium(
+                    f"mechanics: no equilibrium beyond load {lam:.4g}: "
+                    f"{verdict['message']} (Newton stopped at load {new_lam:.4g} after "
+                    f"{cutbacks} cut-back(s); last reason: {entry['cutback']})",
+                    st, verdict=verdict)
             raise SolverError(
                 f"mechanics: Newton diverged at load {new_lam:.4g} after {cutbacks} cut-back(s) "
                 f"(last reason: {entry['cutback']}); last converged load {lam:.4g}"
@@ -666,6 +676,82 @@ def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
         "rss_start_mb": rss_start, "rss_end_mb": rss_end,
         "peak_rss_mb": max(_peak_rss_mb(), rss_end),
     }
+
+
+#: A solve that fails after its last cut-back is at a limit point (no equilibrium along the
+#: load path) when its last converged step moved the body this many times more per unit
+#: load than its first step did (the structure has lost its stiffness against the load), or
+#: when, at the last step's rate, the body would move more than LIMIT_REACH times its size
+#: by full load (it was never held: a breast sliding off a flat slab in the tilted position,
+#: 236 mm per unit load at the last step and 308 at the first, on a 200 mm slab).
+LIMIT_SOFTENING = 10.0
+LIMIT_REACH = 0.5
+
+
+def _limit_point(nw: _Newton, first, prev, lam: float, u: np.ndarray) -> dict | None:
+    """Verdict of a failed solve whose load-displacement path flattens (see
+    :data:`LIMIT_SOFTENING`), with the force budget of the breast (the body where the mesh
+    has no breast region) at the last converged load: its load along the load direction,
+    and what the solid, each effect and the supports carry of it (mN; they sum to the
+    load). None when the path does not flatten (a numerical failure, not a verdict)."""
+    if first is None or prev is None or lam <= prev[0] or first[0] <= 0.0:
+        return None
+    from mechanics.mesh import BREAST_REGIONS
+
+    model, X = nw.model, nw.X
+    tets = model.mesh.tets
+    in_breast = np.isin(model.mesh.region, np.asarray(BREAST_REGIONS))
+    part = "breast" if in_breast.any() else "body"
+    nodes = np.unique(tets[in_breast] if in_breast.any() else tets)
+    U, U0 = u.reshape(-1, 3)[nodes], prev[1].reshape(-1, 3)[nodes]
+    rate = np.linalg.norm(U - U0, axis=1).max() / (lam - prev[0])  # mm per unit load
+    softening = rate / max(np.linalg.norm(first[1].reshape(-1, 3)[nodes], axis=1).max()
+                           / first[0], 1e-300)
+    # the displacement at full load if the last step's rate held, against the part's size
+    extent = float(np.linalg.norm(np.ptp(X[nodes], axis=0)))
+    reach = (np.linalg.norm(U, axis=1).max() + (1.0 - lam) * rate) / extent
+    if not (softening >= LIMIT_SOFTENING or reach >= LIMIT_REACH):
+        return None
+    x = X + u.reshape(-1, 3)
+    load = np.zeros(3)
+    carried: dict[str, np.ndarray] = {}
+    for eff in model.effects:
+        f = np.asarray(eff.contribute(X, x, lam).force, float).reshape(-1, 3)[nodes].sum(0)
+        if _is_load_only(eff):
+            load -= f  # the force the load applies (residual = internal - external)
+        else:
+            carried[eff.name] = f
+    if not np.any(load):
+        return None
+    ev = nw.solid.evaluate(x, tangent=False)
+    carried["solid"] = ev.force.reshape(-1, 3)[nodes].sum(0)
+    R = ev.force.reshape(-1) + _effects(model, X, x, lam)[0]
+    fixed = nw.fixed.reshape(-1, 3)[nodes]
+    carried["supports"] = -np.where(fixed, R.reshape(-1, 3)[nodes], 0.0).sum(0)
+    # the budget along the way the part gives way (its mean motion over the last step),
+    # where the load pushes that way; else along the load
+    move = (U - U0).mean(0)
+    move = move / max(np.linalg.norm(move), 1e-300)
+    d = move if load @ move > 0.05 * np.linalg.norm(load) else load / np.linalg.norm(load)
+    shares = {k: float(v @ d) for k, v in carried.items() if abs(float(v @ d)) > 1e-9}
+    along = float(load @ d)
+    budget = ", ".join(f"{k} {v:.0f}" for k, v in sorted(shares.items(), key=lambda kv: -kv[1]))
+    message = (
+        f"the {part} gives way along ({', '.join(f'{c:.2f}' for c in move)}): over the last "
+        f"converged step it moved {rate:.0f} mm per unit load ({softening:.1f}x the first "
+        f"step's rate; {reach:.1f}x its size by full load). At load {lam:.3g} the load pushes "
+        f"it {along:.0f} mN along ({', '.join(f'{c:.2f}' for c in d)}) (at full load "
+        f"{along / lam:.0f} mN), carried by: {budget} mN; the supports hold "
+        f"{int(np.any(nw.fixed.reshape(-1, 3)[nw.solid.used_nodes], axis=1).sum())} of "
+        f"{int(nw.solid.used_nodes.sum())} nodes. Nothing in the model holds the "
+        f"rest in this position: add support along that direction (e.g. hold the skin's "
+        "lateral cut), or stiffen what carries it (ligaments, skin, fascia, friction)")
+    return {"kind": "no equilibrium", "reason": "limit point", "load": float(lam),
+            "softening": float(softening), "mm_per_unit_load": float(rate),
+            "reach": float(reach), "part": part, "part_size_mm": extent,
+            "budget_direction": d.tolist(), "load_mN": along, "load_at_full_mN": along / lam,
+            "carried_mN": shares, "motion_direction": move.tolist(),
+            "message": message}
 
 
 def _convergence(opt: SolverOptions, steps: list[dict]) -> dict:
