@@ -71,3 +71,23 @@ def test_an_empty_fixed_set_is_a_plain_verdict_before_the_solve():
     assert info.value.verdict["free_modes"] == 6
     assert "'fixed' node set is empty" in str(info.value)
     assert info.value.state is None  # no Newton iteration ran
+
+
+def test_a_breast_nothing_holds_sideways_gets_a_verdict_with_its_force_budget():
+    """Tilted 45 deg on the flat two-mound slab with the paper's supports, nothing but
+    friction and the ligament cables holds the breast sideways: the solve ends in a
+    NoEquilibrium verdict (not a stalled Newton) whose budget balances: what the load pushes
+    along the way the breast gives way equals what the effects, the solid and the supports
+    carry at the last converged load."""
+    from breastlike import bench_mesh, paper_model
+
+    mesh, _ = bench_mesh((6, 4, 2, 2))
+    model = paper_model(mesh, 0.1, 1.0, 80.0, "tilted")
+    with pytest.raises(NoEquilibrium, match="no equilibrium beyond load") as info:
+        solve(model, options=SolverOptions(linear_solver="scipy", max_cutbacks=8))
+    v = info.value.verdict
+    assert v["reason"] == "limit point" and v["part"] == "breast"
+    assert abs(v["motion_direction"][0]) > 0.9  # sideways, along the slab
+    assert v["load_mN"] > 0 and v["load"] < 1.0
+    assert sum(v["carried_mN"].values()) == pytest.approx(v["load_mN"], rel=1e-3)
+    assert info.value.state is not None and info.value.state.load == v["load"]
