@@ -20,6 +20,15 @@ lateral cut as well (the skin sleeve around a torso): ``bench/results/effects_bo
 .json``. ``--phantom-mesh bench/results/phantom_small_8mm.npz`` runs the box with the paper's
 supports on a meshed phantom whose chest wall curves round the torso:
 ``bench/results/effects_box_phantom.json``.
+
+``--suite-mesh`` runs the box on pipeline meshes of the validation suite's subjects
+(``bench/results/suite_meshes``: small-000, -001, -002, -003 meshed by the meshing stage
+from their truth label maps, small-003 also from its own segmentation, and
+``truth_17k.npz``, small-003's 5 mm truth mesh): every point ends converged, or with a
+"no equilibrium" verdict and its force budget (``mechanics.solver.NoEquilibrium``), or
+stalled (a numerical failure: the target is none). ``--points best,0`` on ``truth_17k.npz``
+times the softest corner against the paper's best moduli (target: <= 3x). Results:
+``bench/results/effects_box_suite.json``, ``bench/results/effects_box_speed_17k.json``.
 """
 
 from __future__ import annotations
