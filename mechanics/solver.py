@@ -684,8 +684,12 @@ def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
 #: when, at the last step's rate, the body would move more than LIMIT_REACH times its size
 #: by full load (it was never held: a breast sliding off a flat slab in the tilted position,
 #: 236 mm per unit load at the last step and 308 at the first, on a 200 mm slab).
+#: Either way, the motion must be one of the whole part (its mean over its nodes at least
+#: LIMIT_COHERENCE of their mean magnitude): a part that gives way moves away as a body,
+#: one that sags or spreads in place under a stalled Newton does not.
 LIMIT_SOFTENING = 10.0
 LIMIT_REACH = 0.5
+LIMIT_COHERENCE = 0.5
 
 
 def _limit_point(nw: _Newton, first, prev, lam: float, u: np.ndarray) -> dict | None:
@@ -710,7 +714,15 @@ def _limit_point(nw: _Newton, first, prev, lam: float, u: np.ndarray) -> dict | 
     # the displacement at full load if the last step's rate held, against the part's size
     extent = float(np.linalg.norm(np.ptp(X[nodes], axis=0)))
     reach = (np.linalg.norm(U, axis=1).max() + (1.0 - lam) * rate) / extent
-    if not (softening >= LIMIT_SOFTENING or reach >= LIMIT_REACH):
+    # how much of the last step's motion is one motion of the whole part (1: a rigid
+    # translation, sliding away; near 0: sagging or spreading in place)
+    dU = U - U0
+    coherence = float(np.linalg.norm(dU.mean(0)) / max(np.linalg.norm(dU, axis=1).mean(),
+                                                      1e-300))
+    log.debug("limit point check: softening %.3g, reach %.3g, coherence %.3g", softening,
+              reach, coherence)
+    if not ((softening >= LIMIT_SOFTENING or reach >= LIMIT_REACH)
+            and coherence >= LIMIT_COHERENCE):
         return None
     x = X + u.reshape(-1, 3)
     load = np.zeros(3)
@@ -748,7 +760,8 @@ def _limit_point(nw: _Newton, first, prev, lam: float, u: np.ndarray) -> dict | 
         "lateral cut), or stiffen what carries it (ligaments, skin, fascia, friction)")
     return {"kind": "no equilibrium", "reason": "limit point", "load": float(lam),
             "softening": float(softening), "mm_per_unit_load": float(rate),
-            "reach": float(reach), "part": part, "part_size_mm": extent,
+            "reach": float(reach), "coherence": coherence, "part": part,
+            "part_size_mm": extent,
             "budget_direction": d.tolist(), "load_mN": along, "load_at_full_mN": along / lam,
             "carried_mN": shares, "motion_direction": move.tolist(),
             "message": message}
