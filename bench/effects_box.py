@@ -20,6 +20,15 @@ lateral cut as well (the skin sleeve around a torso): ``bench/results/effects_bo
 .json``. ``--phantom-mesh bench/results/phantom_small_8mm.npz`` runs the box with the paper's
 supports on a meshed phantom whose chest wall curves round the torso:
 ``bench/results/effects_box_phantom.json``.
+
+``--suite-mesh`` runs the box on pipeline meshes of the validation suite's subjects
+(``bench/results/suite_meshes``: small-000, -001, -002, -003 meshed by the meshing stage
+from their truth label maps, small-003 also from its own segmentation, and
+``truth_17k.npz``, small-003's 5 mm truth mesh): every point ends converged, or with a
+"no equilibrium" verdict and its force budget (``mechanics.solver.NoEquilibrium``), or
+stalled (a numerical failure: the target is none). ``--points best,0`` on ``truth_17k.npz``
+times the softest corner against the paper's best moduli (target: <= 3x). Results:
+``bench/results/effects_box_suite.json``, ``bench/results/effects_box_speed_17k.json``.
 """
 
 from __future__ import annotations
@@ -46,11 +55,17 @@ from mechanics.solver import SolverError, SolverOptions, solve  # noqa: E402
 
 #: (breast E, skin E, fascia E) kPa: the 8 corners and the centre of the paper's search box.
 BOX = list(itertools.product((0.1, 4.0), (1.0, 20.0), (80.0, 250.0))) + [(2.05, 10.5, 165.0)]
+#: The paper's best moduli (its supine match): breast 0.3 kPa right, 0.2 kPa left (mean
+#: 0.25), skin 4 kPa, fascia 120 kPa; ``--points best`` (the speed target compares the
+#: softest corner, point 0, with it).
+BEST = (0.25, 4.0, 120.0)
+BEST_REGIONS = {"E_left": 0.2, "E_right": 0.3, "gland": False}
 
 
-def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
+def run_point(mesh, point, position, sliding, options, changes=None, anatomy=None) -> dict:
     E_b, E_s, E_f = point
-    row = {"E_breast": E_b, "E_skin": E_s, "E_fascia": E_f, "position": position}
+    row = {"anatomy": anatomy, "E_breast": E_b, "E_skin": E_s, "E_fascia": E_f,
+           "position": position}
     model = paper_model(mesh, E_b, E_s, E_f, position, sliding=sliding, **(changes or {}))
     t0, c0 = time.perf_counter(), time.process_time()
     try:
@@ -58,10 +73,16 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
         error = None
     except SolverError as exc:
         st, error = exc.state, str(exc)
+        row["verdict"] = getattr(exc, "verdict", None)
     row["seconds"] = time.perf_counter() - t0
     row["cpu_seconds"] = time.process_time() - c0
     row["load_average"] = os.getloadavg()[0]
     row["converged"] = error is None
+    # converged, a physical verdict ("no equilibrium" with its force budget), or stalled
+    row["outcome"] = "converged" if error is None else (
+        "no equilibrium" if row.get("verdict") else "stalled")
+    if st is not None and error is None:
+        row["convergence"] = st.stats.get("convergence")
     row["error"] = error
     if st is not None:
         row["load"] = float(st.load) if error is not None else 1.0
@@ -72,6 +93,14 @@ def run_point(mesh, point, position, sliding, options, changes=None) -> dict:
     else:
         row.update(load=0.0, newton_total=None, cutbacks=None, max_displacement_mm=None)
     return row
+
+
+def suite_mesh(path):
+    """A pipeline mesh (.npz of :class:`mechanics.mesh.Mesh`) with its interface split."""
+    from mechanics.effects._interface import split_interface
+    from mechanics.mesh import Mesh
+
+    return split_interface(Mesh.load_npz(path)), {"suite_mesh": str(path)}
 
 
 def sideways_budget(mesh, changes) -> dict:
@@ -99,7 +128,8 @@ def main() -> int:
                          "tets; 8,6,3,2: ~1.4k)")
     ap.add_argument("--positions", default="prone,supine,tilted")
     ap.add_argument("--points", default=None,
-                    help="comma-separated indices into the 9 box points (default all)")
+                    help="comma-separated indices into the 9 box points (default all); "
+                         "'best': the paper's best moduli")
     ap.add_argument("--max-newton", type=int, default=30)
     ap.add_argument("--max-cutbacks", type=int, default=12,
                     help="cut-backs allowed per solve (bounds the time of a failing point)")
@@ -110,18 +140,27 @@ def main() -> int:
     ap.add_argument("--stagnate-after", type=int, default=SolverOptions.stagnate_after,
                     help="SolverOptions.stagnate_after (0: no early cut-back)")
     add_mesh_arguments(ap, phantom_size=8.0)
+    ap.add_argument("--suite-mesh", default=None,
+                    help="comma-separated Mesh .npz files made by the pipeline's meshing stage "
+                         "from suite subjects' label maps (bench/results/suite_meshes/); the "
+                         "box runs on each in turn")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "effects_box.json"))
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
     positions = args.positions.split(",")
-    idx = range(len(BOX)) if args.points is None else [int(i) for i in args.points.split(",")]
+    idx = range(len(BOX)) if args.points is None else [
+        "best" if i == "best" else int(i) for i in args.points.split(",")]
     sliding = json.loads(args.sliding)
     changes = json.loads(args.changes)
     options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks,
                             stagnate_after=args.stagnate_after)
-    mesh, source = bench_mesh(cells, args.phantom_mesh, args.phantom_size)
+    if args.suite_mesh:
+        meshes = [(Path(p).stem, *suite_mesh(p)) for p in args.suite_mesh.split(",")]
+    else:
+        meshes = [("mesh", *bench_mesh(cells, args.phantom_mesh, args.phantom_size))]
     result = {
-        "mesh": {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes},
+        "meshes": {name: {**source, "tets": mesh.n_tets, "nodes": mesh.n_nodes}
+                   for name, mesh, source in meshes},
         "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
         "sliding": sliding,
         "changes": changes,
@@ -130,35 +169,61 @@ def main() -> int:
                    "singular_shift": SolverOptions.singular_shift},
         "points": [],
     }
-    if "tilted" in positions:
-        result["tilted_budget"] = budget = sideways_budget(mesh, changes)
-        print("tilted: sideways weight {sideways_weight_mN:.0f} mN, friction carries at most "
-              "{friction_capacity_mN:.0f} mN, {cables} cables of total EA {cables_EA_total_mN:.0f}"
-              " mN".format(**budget) + (f" would need a mean strain of "
-                                        f"{budget['cable_strain_needed']:.2f}"
-                                        if budget["cable_strain_needed"] else ""))
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    print(f"mesh {mesh.n_tets} tets, sliding {sliding}")
-    print(f"{'breast':>6} {'skin':>5} {'fascia':>6} {'position':>8} {'ok':>3} {'load':>6} "
-          f"{'newton':>6} {'cuts':>4} {'u_max':>7} {'s':>6} {'cpu_s':>6}")
-    for i in idx:
+    for name, mesh, _ in meshes:
+        if "tilted" in positions:
+            result.setdefault("tilted_budget", {})[name] = budget = sideways_budget(mesh,
+                                                                                    changes)
+            print(f"{name} tilted: sideways weight {budget['sideways_weight_mN']:.0f} mN, "
+                  f"friction carries at most {budget['friction_capacity_mN']:.0f} mN, "
+                  f"{budget['cables']} cables of total EA {budget['cables_EA_total_mN']:.0f} mN")
+        print(f"{name}: {mesh.n_tets} tets, sliding {sliding}")
+        print(f"{'anatomy':>20} {'breast':>6} {'skin':>5} {'fascia':>6} {'position':>8} "
+              f"{'outcome':>14} {'load':>6} {'newton':>6} {'cuts':>4} {'u_max':>7} {'s':>6} "
+              f"{'cpu_s':>6}")
+        for i in idx:
+            for position in positions:
+                if i == "best":
+                    row = run_point(mesh, BEST, position, sliding, options,
+                                    {"regions": BEST_REGIONS, **changes}, name)
+                    row["point"] = "paper's best"
+                else:
+                    row = run_point(mesh, BOX[i], position, sliding, options, changes, name)
+                    row["point"] = i
+                result["points"].append(row)
+                ok = result["points"]
+                result["converged"] = sum(r["converged"] for r in ok)
+                result["verdicts"] = sum(r["outcome"] == "no equilibrium" for r in ok)
+                result["stalled"] = sum(r["outcome"] == "stalled" for r in ok)
+                result["rate"] = result["converged"] / len(ok)
+                tmp = out.with_suffix(".json.tmp")  # after every point: a killed run keeps it
+                tmp.write_text(json.dumps(result, indent=1))
+                tmp.replace(out)
+                print(f"{name:>20} {row['E_breast']:6.2f} {row['E_skin']:5.1f} "
+                      f"{row['E_fascia']:6.1f} {position:>8} {row['outcome']:>14} "
+                      f"{row['load']:6.3f} {row['newton_total'] or 0:6d} "
+                      f"{row['cutbacks'] or 0:4d} {row['max_displacement_mm'] or 0:7.2f} "
+                      f"{row['seconds']:6.1f} {row['cpu_seconds']:6.1f}", flush=True)
+                if row["outcome"] != "converged":
+                    print(f"{'':>20} {row['error']}", flush=True)
+    rows = result["points"]
+    for name, _, _ in meshes:  # the speed target: softest corner against the paper's best
         for position in positions:
-            row = run_point(mesh, BOX[i], position, sliding, options, changes)
-            result["points"].append(row)
-            ok = result["points"]
-            result["converged"] = sum(r["converged"] for r in ok)
-            result["rate"] = result["converged"] / len(ok)
-            tmp = out.with_suffix(".json.tmp")  # after every point: an interrupted run keeps it
-            tmp.write_text(json.dumps(result, indent=1))
-            tmp.replace(out)
-            print(f"{row['E_breast']:6.2f} {row['E_skin']:5.1f} {row['E_fascia']:6.1f} "
-                  f"{position:>8} {'yes' if row['converged'] else 'NO':>3} {row['load']:6.3f} "
-                  f"{row['newton_total'] or 0:6d} {row['cutbacks'] or 0:4d} "
-                  f"{row['max_displacement_mm'] or 0:7.2f} {row['seconds']:6.1f} "
-                  f"{row['cpu_seconds']:6.1f}", flush=True)
+            best = [r for r in rows if r["anatomy"] == name and r["position"] == position
+                    and r["point"] == "paper's best" and r["converged"]]
+            soft = [r for r in rows if r["anatomy"] == name and r["position"] == position
+                    and r["point"] == 0 and r["converged"]]
+            if best and soft:
+                ratio = soft[0]["cpu_seconds"] / best[0]["cpu_seconds"]
+                result.setdefault("softest_over_best_cpu", {}).setdefault(name, {})[
+                    position] = ratio
+                print(f"{name} {position}: softest corner {soft[0]['cpu_seconds']:.1f} CPU s, "
+                      f"paper's best {best[0]['cpu_seconds']:.1f} CPU s: ratio {ratio:.2f}")
+    out.write_text(json.dumps(result, indent=1))
     print(f"converged {result['converged']} / {len(result['points'])} "
-          f"(rate {result['rate']:.2f})")
+          f"(rate {result['rate']:.2f}), no equilibrium {result['verdicts']}, "
+          f"stalled {result['stalled']}")
     return 0
 
 

@@ -25,14 +25,21 @@ class State:
         ``cpu_by_effect`` (effect name -> CPU s), counts of ``evaluations``,
         ``factorizations``, ``analyses``, ``krylov_solves``, ``krylov_iterations``, and
         ``linear``: each linear solve in order (``F`` a factorisation, ``K<n>`` a GMRES solve
-        reusing the last factorisation in n iterations, ``k<n>`` one that failed)
+        reusing the last factorisation in n iterations, ``k<n>`` one that failed);
+        convergence per iteration: ``displacement_norms`` and ``energy_norms`` (FEBio's
+        ``||eta du|| / ||u - u_step_start||`` and ``|eta du . R| / |du_0 . R_0|``),
+        ``linear_residuals`` (relative, of each Newton direction), ``converged_by``
+        ("residual", or "norms": see :class:`mechanics.solver.SolverOptions`), and
+        ``exact_linear_from``: the iteration from which a stalling step solved exactly
     wall_time : s
     pressure : (N,) nodal pressure (kPa, formulation "anp") or (M,) per element
     X : (N, 3) reference positions used, mm
     stats : totals of the solve: the phases' times as in ``log``, the counts, ``threads``
         and ``linear_solver`` used, ``unknowns``, ``matrix_nnz_upper``, memory of the
         process (``rss_start_mb``, ``rss_end_mb``, ``peak_rss_mb``: its high-water mark,
-        which includes what ran before the solve in the same process), MB
+        which includes what ran before the solve in the same process), MB; ``convergence``:
+        the criteria (``residual_tol``, ``dtol``, ``etol``, ``accept_residual``), how many
+        steps met each, and the last converged step's norms
     """
 
     u: np.ndarray

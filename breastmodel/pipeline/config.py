@@ -28,7 +28,8 @@ _REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "i
                   "fiducial_error_mm"}
 _SOLVER_KEYS = {"tol", "max_newton", "initial_steps", "min_step", "max_cutbacks",
                 "grow_below", "linear_solver", "line_search", "stagnate_after",
-                "stagnate_above", "singular_shift", "threads"}
+                "stagnate_above", "singular_shift", "dtol", "etol", "accept_residual",
+                "threads"}
 FIT_PARAMETER_KEYS = {"min", "max", "step", "values"}
 
 #: The defaults: a Neo-Hookean breast (1 kPa), a stiff muscle layer (10 kPa), fixed chest

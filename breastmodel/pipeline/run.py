@@ -243,15 +243,15 @@ def _predict(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[str, A
 
         problem = load_problem(problem_dir)
         X = np.load(sf_dir / "X.npy")
-        error = None
+        error = verdict = None
         try:
             state = predict_position(problem, model, X, position, cfg["solver"])
         except SolverError as exc:
             if exc.state is None:
                 raise StageError("predict", f"position {position!r}: {exc}") from None
-            state, error = exc.state, str(exc)
-            log.warning("predict: %s did not converge (%s); scoring the last converged state",
-                        position, exc)
+            state, error, verdict = exc.state, str(exc), exc.verdict
+            log.warning("predict: %s %s (%s); scoring the last converged state", position,
+                        "has no equilibrium" if verdict else "did not converge", exc)
         x = state.x
         m = score_position(problem, x, position, details=True)
         fields = {"X": state.X, "stress": np.asarray(state.stress).reshape(-1, 9),
@@ -261,7 +261,7 @@ def _predict(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[str, A
         np.savez(d / "predicted.npz", x=x, signed_error=m.pop("signed_error"),
                  skin_nodes=m.pop("skin_nodes"), **fields)
         m.update(converged=bool(state.converged), load_reached=float(state.load),
-                 newton_iterations=state.newton_iterations, error=error,
+                 newton_iterations=state.newton_iterations, error=error, verdict=verdict,
                  max_displacement_mm=float(state.max_displacement()))
         write_json(d / "metrics.json", m)
     return fn
