@@ -296,6 +296,14 @@ def levelset_refine(
         return _levelset_shrunk(sub_feat, sub_mask, mask, sl, lower=lower, upper=upper,
                                 iterations=iterations, curvature=curvature, shrink=shrink)
     init = sitk.Cast(sub_mask, sitk.sitkFloat32) - 0.5
+    out = _threshold_levelset(lower, upper, iterations, curvature).Execute(init, sub_feat)
+    res = mask.copy()
+    res[sl] = sitk.GetArrayViewFromImage(out) > 0
+    return res
+
+
+def _threshold_levelset(lower, upper, iterations, curvature):
+    """ITK's threshold level set, grown where the feature lies in [lower, upper]."""
     ls = sitk.ThresholdSegmentationLevelSetImageFilter()
     ls.SetLowerThreshold(float(lower))
     ls.SetUpperThreshold(float(upper))
@@ -304,10 +312,7 @@ def levelset_refine(
     ls.SetCurvatureScaling(float(curvature))
     ls.SetPropagationScaling(1.0)
     ls.ReverseExpansionDirectionOn()
-    out = ls.Execute(init, sub_feat)
-    res = mask.copy()
-    res[sl] = sitk.GetArrayViewFromImage(out) > 0
-    return res
+    return ls
 
 
 def _levelset_shrunk(sub_feat, sub_mask, mask, sl, *, lower, upper, iterations, curvature,
@@ -316,15 +321,7 @@ def _levelset_shrunk(sub_feat, sub_mask, mask, sl, *, lower, upper, iterations, 
     full resolution by the thresholds."""
     f = sitk.BinShrink(sub_feat, [int(shrink)] * 3)
     m = sitk.BinShrink(sitk.Cast(sub_mask, sitk.sitkFloat32), [int(shrink)] * 3)
-    ls = sitk.ThresholdSegmentationLevelSetImageFilter()
-    ls.SetLowerThreshold(float(lower))
-    ls.SetUpperThreshold(float(upper))
-    ls.SetMaximumRMSError(0.01)
-    ls.SetNumberOfIterations(int(iterations))
-    ls.SetCurvatureScaling(float(curvature))
-    ls.SetPropagationScaling(1.0)
-    ls.ReverseExpansionDirectionOn()
-    out = ls.Execute(m - 0.5, f)
+    out = _threshold_levelset(lower, upper, iterations, curvature).Execute(m - 0.5, f)
     # back to the full grid: the coarse level set's zero crossing, linearly interpolated
     up = sitk.Resample(out, sub_feat, sitk.Transform(), sitk.sitkLinear, -1.0,
                        sitk.sitkFloat32)
