@@ -118,7 +118,7 @@ def measure(max_module: int, max_function: int) -> dict:
     for pkg in PACKAGES:
         for path in sorted((ROOT / pkg).rglob("*.py")):
             rel = str(path.relative_to(ROOT))
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8")
             n = len(text.splitlines())
             if n > max_module:
                 modules.append((rel, n))

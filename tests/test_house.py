@@ -46,5 +46,5 @@ def test_no_effect_name_outside_the_effects_package():
             rel = path.relative_to(ROOT).as_posix()
             if not rel.startswith("mechanics/effects/"):
                 found += [f"{rel}:{line} {name!r} ({rule})"
-                          for line, name, rule in effect_name_uses(path.read_text(), NAMES)]
+                          for line, name, rule in effect_name_uses(path.read_text(encoding="utf-8"), NAMES)]
     assert found == []
