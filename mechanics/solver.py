@@ -260,8 +260,8 @@ def _check_rigid_modes(X: np.ndarray, fixed: np.ndarray, used: np.ndarray,
                 for e in model.effects if e.constraints()}
     where = (", ".join(f"'{k}' holds {v} node(s)" for k, v in supports.items())
              if supports else "no effect sets a support")
-    empty = [k for k in ("fixed",) if k in model.mesh.node_sets
-             and len(model.mesh.node_sets[k]) == 0]
+    held_set = model.mesh.node_sets.get("fixed")  # the meshing stage's chest-wall node set
+    empty = held_set is not None and len(held_set) == 0
     hint = (" The mesh's 'fixed' node set is empty: the meshing stage takes it from the "
             "chest-wall muscle, and a segmentation without muscle leaves none; segment the "
             "muscle, or support the body another way." if empty else "")
