@@ -337,12 +337,8 @@ def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpe
     voxel spacing from :data:`VOXEL_SPACINGS`; T2 or T1, fat suppressed half the time;
     SNR 10-40; bias 10-40 %; rigid motion up to 15 deg / 30 mm (full) or 8 deg / 12 mm
     (small: the small field of view leaves less room); tilt 0-60 deg (whole degrees);
-    breast modulus 0.4-1.0 kPa for full subjects and half that for small ones (sag scales as
+    breast modulus 1.5-3 kPa for full subjects and half that for small ones (sag scales as
     rho g L^2 / E: the half-size anatomy then strains as much as the adult); truth mesh 5 mm.
-    The modulus band is that of models fitted to prone-supine MRI without skin: Mira et al.
-    fitted 0.2-0.3 kPa with skin and found the breast moving too little against the images
-    above 1 kPa. (A band of 1.5-3 kPa left the small subjects sagging 0.5-0.9 mm, below
-    their voxels' noise: their modulus could not be recovered.)
     """
     if size not in SIZES:
         raise ValueError(f"phantom: size must be one of {SIZES}, got {size!r}")
@@ -377,7 +373,7 @@ def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpe
         max_rotation_deg=u(0.0, 15.0 if full else 8.0, 2),
         max_translation_mm=u(0.0, 30.0 if full else 12.0, 2),
         positions=("prone", "supine", f"supine_tilted_{int(rng.integers(0, 61))}"),
-        breast_E_kpa=round(s * float(rng.uniform(0.4, 1.0)), 3),
+        breast_E_kpa=round(s * float(rng.uniform(1.5, 3.0)), 2),
     )
     drawn.update(overrides)
     return SubjectSpec(seed=int(seed), size=size, **drawn)
