@@ -302,6 +302,16 @@ def levelset_refine(
     return res
 
 
+def _require_body(air: np.ndarray, name: str) -> None:
+    """Stop unless the volume holds blocks of pure background and of pure tissue."""
+    blocks = coherent_blocks(air)
+    if min(blocks) < MIN_BLOCKS:
+        raise SegmentationError(
+            f"{STAGE}: {name}: no body found: {blocks[0]} block(s) of 4^3 voxels are "
+            f"background and {blocks[1]} are tissue, at 90 % or more (at least {MIN_BLOCKS} "
+            "of each expected; is this volume noise only?)")
+
+
 def _threshold_levelset(lower, upper, iterations, curvature):
     """ITK's threshold level set, grown where the feature lies in [lower, upper]."""
     ls = sitk.ThresholdSegmentationLevelSetImageFilter()
@@ -590,12 +600,7 @@ def _fat_bright_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: l
     body = ~air
     if not body.any():
         raise SegmentationError(f"{STAGE}: {name}: empty body mask")
-    blocks = coherent_blocks(air)
-    if min(blocks) < MIN_BLOCKS:
-        raise SegmentationError(
-            f"{STAGE}: {name}: no body found: {blocks[0]} block(s) of 4^3 voxels are "
-            f"background and {blocks[1]} are tissue, at 90 % or more (at least {MIN_BLOCKS} "
-            "of each expected; is this volume noise only?)")
+    _require_body(air, name)
     cnr = contrast_to_noise(a, air, lv)
     if cnr < MIN_CNR:
         raise SegmentationError(
@@ -716,12 +721,7 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
             "(fat-suppressed contrast; is this a body MRI with air around it?)")
     lv = {"air": _interior_median(a, air, peak)}
     body = ~air
-    blocks = coherent_blocks(air)
-    if min(blocks) < MIN_BLOCKS:
-        raise SegmentationError(
-            f"{STAGE}: {name}: no body found: {blocks[0]} block(s) of 4^3 voxels are "
-            f"background and {blocks[1]} are tissue, at 90 % or more (at least {MIN_BLOCKS} "
-            "of each expected; is this volume noise only?)")
+    _require_body(air, name)
     # distance of every voxel to the air, on every second voxel (mm)
     sub_body = body[::2, ::2, ::2]
     depth = ndimage.distance_transform_edt(sub_body, sampling=2.0 * sp)
