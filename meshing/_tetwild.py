@@ -93,6 +93,16 @@ def _load_bias(path: Path) -> int:
     return min(starts)
 
 
+def _writable(address: int) -> bool:
+    """Whether ``address`` lies in a writable mapping of this process (/proc/self/maps)."""
+    for line in Path("/proc/self/maps").read_text().splitlines():
+        span, perms = line.split()[:2]
+        lo, hi = (int(v, 16) for v in span.split("-"))
+        if lo <= address < hi:
+            return "w" in perms
+    return False
+
+
 def reproducible() -> str | None:
     """Install the fixed seed (once per process); None when fTetWild is reproducible, else
     the reason it is not."""
@@ -109,6 +119,8 @@ def reproducible() -> str | None:
         if not slots:
             raise OSError(f"{lib_path.name} does not call std::random_device")
         bias = _load_bias(lib_path)
+        if not all(_writable(bias + slot) for slot in slots):
+            raise OSError(f"{lib_path.name}'s offset table is read-only (a full-RELRO build)")
         hook = ctypes.CFUNCTYPE(ctypes.c_uint, ctypes.c_void_p)(lambda _self: SEED)
         address = ctypes.cast(hook, ctypes.c_void_p).value
         for slot in slots:
