@@ -45,6 +45,7 @@ def test_no_effect_name_outside_the_effects_package():
         for path in sorted((ROOT / pkg).rglob("*.py")):
             rel = path.relative_to(ROOT).as_posix()
             if not rel.startswith("mechanics/effects/"):
+                text = path.read_text(encoding="utf-8")
                 found += [f"{rel}:{line} {name!r} ({rule})"
-                          for line, name, rule in effect_name_uses(path.read_text(encoding="utf-8"), NAMES)]
+                          for line, name, rule in effect_name_uses(text, NAMES)]
     assert found == []
