@@ -26,15 +26,22 @@ from registration.transforms import transform_points, write_transform
 MOTION = dict(rot_deg=(6.0, -4.0, 8.0), shift_mm=(4.0, -3.0, 5.0))
 
 
-@pytest.fixture(scope="module")
-def tilted():
-    """(fixed, moving, reference labels, truth transform, fixed fiducials, moving fiducials)."""
+def _tilted_pair():
+    """The slab rendered supine and tilted (moved by MOTION, breasts swung 25 mm): (fixed,
+    moving, reference labels, truth transform, fixed fiducials, moving fiducials)."""
     anatomy = Slab()
     fixed, labels = render(anatomy, seed=1)
     truth = euler(**MOTION)
     moving, _ = render(anatomy, motion=truth, swing_mm=25.0, seed=2)
     fp = anatomy.markers()
     mp = {k: transform_points(truth, v)[0] for k, v in fp.items()}
+    return fixed, moving, labels, truth, fp, mp
+
+
+@pytest.fixture(scope="module")
+def tilted():
+    """(fixed, moving, reference labels, truth transform, fixed fiducials, moving fiducials)."""
+    fixed, moving, labels, truth, fp, mp = _tilted_pair()
     return (preprocess(fixed, denoise_iterations=0), preprocess(moving, denoise_iterations=0),
             labels, truth, fp, mp)
 
@@ -145,12 +152,7 @@ def test_seed_zero_is_refused(tilted):
 def tilted_subject(tmp_path_factory):
     """Subject folder (supine + tilted, fiducials.csv) and a folder with the supine labels."""
     root = tmp_path_factory.mktemp("tilted_subject")
-    anatomy = Slab()
-    fixed, labels = render(anatomy, seed=1)
-    truth = euler(**MOTION)
-    moving, _ = render(anatomy, motion=truth, swing_mm=25.0, seed=2)
-    fp = anatomy.markers()
-    mp = {k: transform_points(truth, v)[0] for k, v in fp.items()}
+    fixed, moving, labels, truth, fp, mp = _tilted_pair()
     g = np.sqrt(0.5)
     subject = write_subject(root / "subject", {"supine": (fixed, (0, 1, 0)),
                                                "tilted": (moving, (g, g, 0))},
