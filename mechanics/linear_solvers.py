@@ -28,6 +28,20 @@ from mechanics.system import full_from_upper
 os.environ.setdefault("KMP_BLOCKTIME", "0")
 
 
+#: Time of one flop of a substitution over one of a factorisation (BLAS-3 supernodes against
+#: memory-bound triangular solves and a sparse product), measured on the 2-core machine with
+#: the hemisphere's saddle-point tangent: PARDISO on 2 threads 3.4-7.8 (637 to 48k unknowns,
+#: growing with the size), SuperLU 1.0-8.5. Fixed, so that what a factorisation is worth
+#: (:func:`_worth`) depends on the matrix only, never on the load: two runs take one path.
+_SOLVE_FLOP_COST = {"pardiso": 6.0, "scipy": 4.0}
+
+
+def _worth(name: str, factor_flops: float, iteration_flops: float) -> float:
+    """How many preconditioned GMRES iterations (a substitution with the factor and a product
+    with the matrix) cost as much as one factorisation, from operation counts."""
+    return factor_flops / (_SOLVE_FLOP_COST[name] * max(iteration_flops, 1.0))
+
+
 class SingularSystem(RuntimeError):
     """The tangent could not be factorised or the solve is meaningless."""
 
@@ -42,6 +56,7 @@ class ScipySolver:
 
     def __init__(self, *, threads: int | None = None):
         self._lu = None
+        self.factor_worth = 0.0  # GMRES iterations one factorisation is worth (_worth)
 
     def factorize(self, U: sp.csr_matrix, *, symmetric: bool = True) -> None:
         """U: upper triangle if ``symmetric`` else the full matrix."""
@@ -51,6 +66,12 @@ class ScipySolver:
             self._lu = spla.splu(A.tocsc(), permc_spec="COLAMD", diag_pivot_thresh=0.01)
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise SingularSystem(str(exc)) from None
+        # right-looking LU: column j of L (l_j below the diagonal) meets row j of U (u_j)
+        lower = np.diff(self._lu.L.tocsc().indptr).astype(float) - 1.0
+        upper = np.diff(self._lu.U.tocsr().indptr).astype(float) - 1.0
+        flops = 2.0 * float(lower @ upper) + float(lower.sum())
+        self.factor_worth = _worth(self.name, flops, 2.0 * (self._lu.L.nnz + self._lu.U.nnz
+                                                             + A.nnz))
 
     last_refinements = 0
 
@@ -71,7 +92,9 @@ _POOL = threading.local()
 #: any order, and Bunch-Kaufman's 2x2 pivots cost 30 % more time for the same fill.
 #: "double": the robust fallback (Bunch-Kaufman; scaling and weighted matching for
 #: unsymmetric matrices), used when a single-precision solve cannot be refined.
-_COMMON = {1: 1, 2: 2, 8: 0, 35: 1}  # our iparms; METIS; no PARDISO refinement; 0-based
+#: iparm 18 and 19 < 0: report the factor's nonzeros and its factorisation's Mflops.
+_COMMON = {1: 1, 2: 2, 8: 0, 18: -1, 19: -1, 35: 1}  # ours; METIS; no PARDISO refinement;
+# 0-based
 _IPARM = {
     ("single", -2): {**_COMMON, 10: 8, 21: 0, 28: 1},
     ("double", -2): {**_COMMON, 10: 8, 21: 1},
@@ -133,6 +156,12 @@ class _Handle:
             self.ia = A.indptr.astype(np.int32)
             self.ja = A.indices.astype(np.int32)
             self.threads = threads
+            # conditional numerical reproducibility on this many threads: without it two
+            # factorisations of one matrix on 2 threads differ in their last bits (measured:
+            # 2 distinct solutions in 30, 2e-6 apart on a 47k-unknown Laplacian), which the
+            # Newton and stress-free loops carry into 2e-5 mm node differences between two
+            # runs of one subject; with it they are bitwise equal, for 0-15 % more time
+            self.iparm[33] = threads
             self.analyses += 1
             t0 = time.process_time()
             try:
@@ -145,6 +174,16 @@ class _Handle:
                 self.analysis_cpu_s += time.process_time() - t0
         with _mkl_threads(self.lib, self.threads):
             self.call(22)
+
+    @property
+    def factor_flops(self) -> float:
+        """Operations of one numerical factorisation (iparm 19, in Mflops)."""
+        return 1e6 * float(self.iparm[18])
+
+    @property
+    def factor_nonzeros(self) -> int:
+        """Nonzeros of the factor (iparm 18): L for a symmetric matrix, L and U else."""
+        return int(self.iparm[17])
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """Phase 33 (forward and backward substitution) with the analysis's threads."""
@@ -245,6 +284,16 @@ class PardisoSolver:
         self.analyses += h.analyses - n0
         self.analysis_cpu_s += h.analysis_cpu_s - c0
         self._h = h
+
+    @property
+    def factor_worth(self) -> float:
+        """GMRES iterations that cost as much as one factorisation (:func:`_worth`)."""
+        if self._h is None:
+            return 0.0
+        # a substitution reads the factor twice: L and L^T (symmetric), or L and U once each
+        per = (4 if self._mtype == -2 else 2) * self._h.factor_nonzeros
+        return _worth(self.name, self._h.factor_flops, per + 2.0 * self._A.nnz
+                      * (2 if self._mtype == -2 else 1))
 
     def precondition(self, b: np.ndarray) -> np.ndarray:
         """One solve with the factor as it is (no refinement): a preconditioner."""

@@ -309,7 +309,6 @@ class _Newton:
         self.effect_cpu: dict[str, float] = {}
         self.n_eval = 0
         self.factored = False
-        self.last_factor_s = self.last_solve_s = self.krylov_it_s = 0.0
         self.n_factor = 0
         self.krylov_used = 0
         self.krylov_its = 0
@@ -400,11 +399,10 @@ class _Newton:
         b[: self.sys.n_free] = -R[self.free]
         matvec = self._matvec(A)
         y = None
-        # CPU seconds of one GMRES iteration: a triangular solve, or what the last GMRES
-        # solve measured (a matvec and the orthogonalisation on top; 2x the triangular
-        # solve with the sliding effect's unsymmetric tangent at 20k tets)
-        per_it = max(self.last_solve_s, self.krylov_it_s, 1e-9)
-        budget = int(0.8 * self.last_factor_s / per_it)
+        # GMRES iterations a new factorisation is worth, from the operation counts of the
+        # last one (not from measured times: those follow the load, and two runs of one
+        # model would then take different paths to slightly different answers)
+        budget = int(0.8 * getattr(self.lin, "factor_worth", 0.0))
         below = self.opt.reuse_below
         if below is None:
             below = np.inf if self.symmetric else 0.05
@@ -426,9 +424,6 @@ class _Newton:
             self.trace.append("F")
             t1, c1 = time.perf_counter(), time.process_time()
             y = self.lin.solve(b)
-            self.last_factor_s = c1 - c0  # CPU time: the budget must not follow the load
-            # per triangular solve (a refined solve makes several)
-            self.last_solve_s = (time.process_time() - c1) / (1 + self.lin.last_refinements)
             self.t["factor"] += t1 - t0
             self.t["solve"] += time.perf_counter() - t1
             self.c["factor"] += c1 - c0
@@ -469,9 +464,6 @@ class _Newton:
                              callback=count, callback_type="pr_norm")
         self.krylov_its += its[0]
         y = pre(z) if info == 0 else z
-        c1 = time.process_time()
-        if its[0]:
-            self.krylov_it_s = (c1 - c0) / its[0]
         self._lap("solve", t0, c0)
         if info != 0 or not np.all(np.isfinite(y)):
             return None
