@@ -66,12 +66,14 @@ class ScipySolver:
             self._lu = spla.splu(A.tocsc(), permc_spec="COLAMD", diag_pivot_thresh=0.01)
         except RuntimeError as exc:  # "Factor is exactly singular"
             raise SingularSystem(str(exc)) from None
-        # right-looking LU: column j of L (l_j below the diagonal) meets row j of U (u_j)
-        lower = np.diff(self._lu.L.tocsc().indptr).astype(float) - 1.0
-        upper = np.diff(self._lu.U.tocsr().indptr).astype(float) - 1.0
+        # right-looking LU: column j of L (l_j below the diagonal) meets row j of U (u_j);
+        # SuperLU builds a copy of L or U at each access, so one at a time
+        n = A.shape[0]
+        lower = np.diff(self._lu.L.indptr).astype(float) - 1.0  # CSC: per column
+        upper = np.bincount(self._lu.U.indices, minlength=n).astype(float) - 1.0  # per row
         flops = 2.0 * float(lower @ upper) + float(lower.sum())
-        self.factor_worth = _worth(self.name, flops, 2.0 * (self._lu.L.nnz + self._lu.U.nnz
-                                                             + A.nnz))
+        nnz = float(lower.sum() + upper.sum()) + 2.0 * n
+        self.factor_worth = _worth(self.name, flops, 2.0 * (nnz + A.nnz))
 
     last_refinements = 0
 
