@@ -226,20 +226,13 @@ def run_sweep(fn: Callable[[dict], Mapping], points: Sequence[Mapping[str, Any]]
         (``"fn"`` or ``"worker"``), and ``"traceback"`` when fn raised.
     """
     import cloudpickle
-    from distributed import Client, LocalCluster, as_completed
-    from tqdm.auto import tqdm
 
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     norm = [_normalise_point(p) for p in points]
     keys = [point_key(p) for p in norm]
-    todo = dict(zip(keys, norm))  # unique keys, first occurrence order
     stored = load_results(out_dir)
-    for k, rec in stored.items():
-        if k in todo and rec.get("point") == todo[k] and (
-                rec.get("status") == "ok"
-                or (rec.get("cause") == "fn" and not retry_failed)):
-            del todo[k]
+    todo = _to_compute(dict(zip(keys, norm)), stored, retry_failed=retry_failed)
     try:
         cloudpickle.dumps(fn)
     except Exception as exc:
@@ -250,42 +243,13 @@ def run_sweep(fn: Callable[[dict], Mapping], points: Sequence[Mapping[str, Any]]
     folder.mkdir(parents=True, exist_ok=True)
     n_now = 0
     if todo and scheduler is None and n_workers == 0:
-        for k, p in tqdm(todo.items(), desc="sweep", unit="point", disable=not progress):
-            stored[k] = _evaluate(fn, p, k)
-            write_json(folder / f"{k}.json", stored[k])
-            n_now += 1
+        n_now = _run_here(fn, todo, folder, stored, progress=progress)
         todo = {}
     if todo:
-        cluster = None
-        if scheduler is None:
-            cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
-                                   processes=True, dashboard_address=":0")
-        client = Client(scheduler if scheduler is not None else cluster)
-        try:
-            run = uuid.uuid4().hex[:8]  # dask keys unique per run: a shared scheduler would
-            futures = {                  # otherwise hand back another sweep's same-key task
-                client.submit(_evaluate, fn, p, k, key=f"sweep-{k}-{run}", retries=retries,
-                              pure=False): k
-                for k, p in todo.items()
-            }
-            bar = tqdm(total=len(set(keys)), initial=len(set(keys)) - len(todo), desc="sweep",
-                       unit="point", disable=not progress)
-            with bar:
-                for fut in as_completed(futures):
-                    k = futures[fut]
-                    try:
-                        rec = fut.result()
-                    except Exception as exc:  # KilledWorker, or errors outside fn
-                        rec = _lost(k, todo[k], exc)
-                    write_json(folder / f"{k}.json", rec)
-                    stored[k] = rec
-                    n_now += 1
-                    fut.release()
-                    bar.update(1)
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+        n_now += _run_on_cluster(fn, todo, folder, stored, n_total=len(set(keys)),
+                                 scheduler=scheduler, n_workers=n_workers,
+                                 threads_per_worker=threads_per_worker, retries=retries,
+                                 progress=progress)
 
     results = [stored[k] for k in keys]
     statuses = [r["status"] for r in results]
@@ -296,3 +260,74 @@ def run_sweep(fn: Callable[[dict], Mapping], points: Sequence[Mapping[str, Any]]
         "n_workers": None if scheduler else n_workers, "versions": package_versions(),
     })
     return results
+
+
+def _to_compute(todo: dict[str, dict], stored: Mapping[str, dict], *,
+                retry_failed: bool) -> dict[str, dict]:
+    """The points of ``todo`` (key -> point, unique keys in first-occurrence order) that no
+    stored record answers: none stored, a worker lost it, or ``fn`` failed and
+    ``retry_failed``."""
+    for k, rec in stored.items():
+        if k in todo and rec.get("point") == todo[k] and (
+                rec.get("status") == "ok"
+                or (rec.get("cause") == "fn" and not retry_failed)):
+            del todo[k]
+    return todo
+
+
+def _run_here(fn: Callable[[dict], Mapping], todo: Mapping[str, dict], folder: Path,
+              stored: dict[str, dict], *, progress: bool) -> int:
+    """Evaluate the points one after the other in this process, storing each record; the
+    number evaluated."""
+    from tqdm.auto import tqdm
+
+    n_now = 0
+    for k, p in tqdm(todo.items(), desc="sweep", unit="point", disable=not progress):
+        stored[k] = _evaluate(fn, p, k)
+        write_json(folder / f"{k}.json", stored[k])
+        n_now += 1
+    return n_now
+
+
+def _run_on_cluster(fn: Callable[[dict], Mapping], todo: Mapping[str, dict], folder: Path,
+                    stored: dict[str, dict], *, n_total: int, scheduler: str | None,
+                    n_workers: int, threads_per_worker: int, retries: int,
+                    progress: bool) -> int:
+    """Evaluate the points on the dask cluster at ``scheduler`` (default: a local cluster,
+    closed at the end), storing each record as it arrives (a lost worker's point as failed);
+    the number evaluated. ``n_total`` (unique points of the sweep) sizes the progress bar."""
+    from distributed import Client, LocalCluster, as_completed
+    from tqdm.auto import tqdm
+
+    n_now = 0
+    cluster = None
+    if scheduler is None:
+        cluster = LocalCluster(n_workers=n_workers, threads_per_worker=threads_per_worker,
+                               processes=True, dashboard_address=":0")
+    client = Client(scheduler if scheduler is not None else cluster)
+    try:
+        run = uuid.uuid4().hex[:8]  # dask keys unique per run: a shared scheduler would
+        futures = {                  # otherwise hand back another sweep's same-key task
+            client.submit(_evaluate, fn, p, k, key=f"sweep-{k}-{run}", retries=retries,
+                          pure=False): k
+            for k, p in todo.items()
+        }
+        bar = tqdm(total=n_total, initial=n_total - len(todo), desc="sweep",
+                   unit="point", disable=not progress)
+        with bar:
+            for fut in as_completed(futures):
+                k = futures[fut]
+                try:
+                    rec = fut.result()
+                except Exception as exc:  # KilledWorker, or errors outside fn
+                    rec = _lost(k, todo[k], exc)
+                write_json(folder / f"{k}.json", rec)
+                stored[k] = rec
+                n_now += 1
+                fut.release()
+                bar.update(1)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+    return n_now

@@ -110,16 +110,7 @@ def run_story(data: str | Path, out: str | Path, *, mesh_size_mm: float = 8.0,
     subject_dir, truth_dir = data / "subject", data / "subject_truth"
     meta = json.loads((data / "demo.json").read_text())
     subject = read_subject(subject_dir)
-    steps: dict[str, dict[str, float]] = {}
-
-    def timed(name: str, fn):
-        w0, c0 = time.perf_counter(), _cpu_s()
-        if progress:
-            print(f"\n== {name}", flush=True)
-        res = fn()
-        steps[name] = {"wall_s": round(time.perf_counter() - w0, 1),
-                       "cpu_s": round(_cpu_s() - c0, 1)}
-        return res
+    timed = _Steps(progress)
 
     # run 1: the bulk model, one breast modulus fitted on supine and prone, tilted held out
     cfg0 = suite_config("truth_labels", truth_dir, list(subject.positions), subject.reference,
@@ -131,14 +122,8 @@ def run_story(data: str | Path, out: str | Path, *, mesh_size_mm: float = 8.0,
     diag = timed("diagnose run 1",
                  lambda: diagnose(run0, n_workers=n_workers, rim_mm=rim_mm,
                                   progress=progress))["missing"]
-    names = [r["name"] for r in diag["ranking"]]
-    sig = [r for r in diag["ranking"] if r["significant"]]
-    named = sig[0]["name"] if sig else None
     hidden = meta["hidden_effect"]
-    rank = names.index(hidden) + 1 if hidden in names else None
-    if named is None:
-        raise RuntimeError(f"demo: the diagnosis found no significant missing effect "
-                           f"({diag['verdict']}); see {run0 / 'diagnosis.html'}")
+    names, named, rank = _named(diag, hidden, run0)
     # run 2: what `breastmodel run SUBJECT --from run0 --add-effect NAMED` does
     cfg1 = add_effect(from_run_config(run0), named, run0)
     timed(f"refit with {named} (run 2)",
@@ -149,13 +134,45 @@ def run_story(data: str | Path, out: str | Path, *, mesh_size_mm: float = 8.0,
     page = out / "index.html"
     result = {"hidden_effect": hidden, "named": named, "rank": rank,
               "verdict": diag["verdict"], "top": names[:5], "mhd_mm": mhd,
-              "page": str(page), "steps": steps, "compare": cmp,
+              "page": str(page), "steps": timed.steps, "compare": cmp,
               "truth": json.loads((truth_dir / "truth_model.json").read_text()),
               "spec": meta.get("spec"), "mesh_size_mm": mesh_size_mm,
               "load": list(os.getloadavg())}
     write_story_page(page, result)
     write_json(out / "demo.json", {k: v for k, v in result.items() if k != "compare"})
     return result
+
+
+class _Steps:
+    """Runs the story's steps, printing each name with ``progress``; ``steps`` holds each
+    one's wall and CPU seconds."""
+
+    def __init__(self, progress: bool):
+        self.progress = progress
+        self.steps: dict[str, dict[str, float]] = {}
+
+    def __call__(self, name: str, fn):
+        """``fn()``, timed under ``name``."""
+        w0, c0 = time.perf_counter(), _cpu_s()
+        if self.progress:
+            print(f"\n== {name}", flush=True)
+        res = fn()
+        self.steps[name] = {"wall_s": round(time.perf_counter() - w0, 1),
+                            "cpu_s": round(_cpu_s() - c0, 1)}
+        return res
+
+
+def _named(diag: dict[str, Any], hidden: str, run0: Path) -> tuple[list[str], str, int | None]:
+    """The ranked candidates' names, the best significant one and the hidden effect's rank
+    (1-based; None when unranked). Raises when no candidate is significant."""
+    names = [r["name"] for r in diag["ranking"]]
+    sig = [r for r in diag["ranking"] if r["significant"]]
+    named = sig[0]["name"] if sig else None
+    rank = names.index(hidden) + 1 if hidden in names else None
+    if named is None:
+        raise RuntimeError(f"demo: the diagnosis found no significant missing effect "
+                           f"({diag['verdict']}); see {run0 / 'diagnosis.html'}")
+    return names, named, rank
 
 
 def _truth_rows(truth: dict) -> str:

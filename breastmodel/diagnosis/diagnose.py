@@ -104,6 +104,25 @@ def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
                          maps: Mapping[str, Mapping[str, Any]]) -> None:
     """A self-contained HTML page of a diagnosis (pictures embedded)."""
     from breastmodel.config import write_atomic
+
+    miss = diag["missing"]
+    parts = _where_section(diag, maps)
+    parts += _missing_section(miss)
+    parts += _failed_section(miss)
+    parts += _correction_maps(miss, maps)
+    parts += ["<h3>Not scored</h3>",
+              _table(["name", "reason"], [[s["name"], s["reason"]] for s in miss["skipped"]])]
+    parts += _next_step(diag)
+    style = ("<style>body{font-family:sans-serif;max-width:1300px;margin:auto}"
+             "table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #bbb;"
+             "padding:2px 6px}.verdict{font-size:16px}img{max-width:100%}</style>")
+    write_atomic(Path(path), "<!doctype html><html><head><meta charset='utf-8'>"
+                 f"<title>diagnosis</title>{style}</head><body>{''.join(parts)}</body></html>")
+
+
+def _where_section(diag: Mapping[str, Any], maps: Mapping[str, Mapping[str, Any]]) -> list:
+    """The page's title and verdict, then where the model fails: the error maps, each
+    position's region table and the error against local strain."""
     from breastmodel.diagnosis.views import (
         error_limit,
         error_maps_figure,
@@ -135,7 +154,12 @@ def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
               img_tag(error_vs_strain_figure(
                   maps, tables={p: t["error_vs_strain"] for p, t in where["positions"].items()}),
                   "error vs strain")]
-    parts.append("<h2>2. What is missing</h2>")
+    return parts
+
+
+def _missing_section(miss: Mapping[str, Any]) -> list:
+    """What is missing: how candidates are scored, and the ranking table."""
+    parts = ["<h2>2. What is missing</h2>"]
     parts.append(
         "<p>Physical effects the model does not use, parameters it holds fixed, and errors of "
         "the measurement itself (a rigid misregistration of one position: 6 parameters; an "
@@ -168,33 +192,38 @@ def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
                          *[f"RMS {p}" for p in pos], "held out (RMS)", "estimate",
                          "evidence (region RMS before->after)",
                          "MHD after a real re-fit with it (mm)"], rows, raw_header=True))
-    if miss["failed"]:
-        b = miss.get("budget", {})
-        parts += ["<h3>Candidates whose evaluation failed</h3>",
-                  f"<p>Each evaluation may spend {b.get('max_solves', '?')} forward solves and "
-                  f"{b.get('max_seconds', float('nan')):.0f} s (the fitted model's own took "
-                  f"{b.get('base_solves', '?')} and {b.get('base_seconds', float('nan')):.1f} "
-                  "s).</p>",
-                  _table(["candidate", "kind", "evaluation", "seconds", "reason"],
-                         [[f["name"], f.get("kind", ""), f.get("evaluation", ""),
-                           f.get("seconds") or float("nan"), f["error"]]
-                          for f in miss["failed"]])]
-    parts += _correction_maps(miss, maps)
-    parts += ["<h3>Not scored</h3>",
-              _table(["name", "reason"], [[s["name"], s["reason"]] for s in miss["skipped"]])]
+    return parts
+
+
+def _failed_section(miss: Mapping[str, Any]) -> list:
+    """The candidates whose evaluation failed, with the budget they had (none: nothing)."""
+    if not miss["failed"]:
+        return []
+    b = miss.get("budget", {})
+    return ["<h3>Candidates whose evaluation failed</h3>",
+            f"<p>Each evaluation may spend {b.get('max_solves', '?')} forward solves and "
+            f"{b.get('max_seconds', float('nan')):.0f} s (the fitted model's own took "
+            f"{b.get('base_solves', '?')} and {b.get('base_seconds', float('nan')):.1f} "
+            "s).</p>",
+            _table(["candidate", "kind", "evaluation", "seconds", "reason"],
+                   [[f["name"], f.get("kind", ""), f.get("evaluation", ""),
+                     f.get("seconds") or float("nan"), f["error"]]
+                    for f in miss["failed"]])]
+
+
+def _next_step(diag: Mapping[str, Any]) -> list:
+    """What to do about the best significant candidate: correct the measurement, or add the
+    effect and compare (none significant: nothing)."""
+    miss = diag["missing"]
     sig = [r for r in miss["ranking"] if r["significant"]]
     if sig and sig[0].get("measurement"):
-        parts.append("<h2>3. Correct the measurement</h2><p>"
-                     f"{html.escape(miss['verdict'])}. The estimate: "
-                     + html.escape(", ".join(f"{k.split('.', 1)[-1]} = {v:.2f}" for k, v in
-                                             sig[0]["estimate"].items())) + "</p>")
-    elif sig:
-        parts.append("<h2>3. Add it and watch the error fall</h2><pre>breastmodel run SUBJECT "
-                     f"--config RUN.toml --out DIR2 --add-effect {html.escape(sig[0]['name'])}\n"
-                     f"breastmodel compare {html.escape(str(diag['run']))} DIR2 --out "
-                     "COMPARE</pre>")
-    style = ("<style>body{font-family:sans-serif;max-width:1300px;margin:auto}"
-             "table{border-collapse:collapse;font-size:12px}td,th{border:1px solid #bbb;"
-             "padding:2px 6px}.verdict{font-size:16px}img{max-width:100%}</style>")
-    write_atomic(Path(path), "<!doctype html><html><head><meta charset='utf-8'>"
-                 f"<title>diagnosis</title>{style}</head><body>{''.join(parts)}</body></html>")
+        return ["<h2>3. Correct the measurement</h2><p>"
+                f"{html.escape(miss['verdict'])}. The estimate: "
+                + html.escape(", ".join(f"{k.split('.', 1)[-1]} = {v:.2f}" for k, v in
+                                        sig[0]["estimate"].items())) + "</p>"]
+    if sig:
+        return ["<h2>3. Add it and watch the error fall</h2><pre>breastmodel run SUBJECT "
+                f"--config RUN.toml --out DIR2 --add-effect {html.escape(sig[0]['name'])}\n"
+                f"breastmodel compare {html.escape(str(diag['run']))} DIR2 --out "
+                "COMPARE</pre>"]
+    return []

@@ -342,9 +342,8 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
         "regions", "landmarks"}}, "stress_free": {...}}).
     """
     from breastmodel.config import write_json
-    from breastmodel.pipeline.problem import load_problem, mesh_of
+    from breastmodel.pipeline.problem import load_problem
     from breastmodel.pipeline.report import write_report
-    from meshing.export import write_ply
 
     out = Path(out)
     problem = load_problem(problem_dir)
@@ -354,34 +353,14 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
                                "stress_free": {k: v for k, v in sf.items() if k != "history"}}
     pictures, blocks, febio = {}, {}, {}
     for pos, d in pred_dirs.items():
-        m = json.loads((d / "metrics.json").read_text())
-        with np.load(d / "predicted.npz") as z:
-            pred = {k: z[k] for k in z.files}
-        err = np.asarray(pred["signed_error"], float)
-        metrics["positions"][pos] = {**{k: m[k] for k in _SUMMARY_KEYS if k in m},
-                                     "regions": m.get("regions", {}),
-                                     **({"landmarks": m["landmarks"]} if "landmarks" in m
-                                        else {})}
-        names = write_position_meshes(out, problem, pos, pred)
-        blocks[pos] = {"mesh": names["mesh"], "predicted skin": names["skin"],
-                       "measured skin": names["measured_skin"]}
-        x, nodes = pred["x"], pred["skin_nodes"]
-        faces = np.asarray(mesh_of(problem, len(x)).face_sets["skin"])
-        remap = np.full(len(x), -1, np.int64)
-        remap[nodes] = np.arange(len(nodes))
-        write_ply(x[nodes], remap[faces], out / f"{pos}_predicted.ply")
-        pictures[pos] = (x[nodes], remap[faces], err, problem.skins[pos])
-        X = pred["X"] if "X" in pred else np.load(sf_dir / "X.npy")
-        febio[pos] = write_febio(out, problem, params["model"], pos, X)
+        metrics["positions"][pos], blocks[pos], pictures[pos], febio[pos] = _position_outputs(
+            out, problem, sf_dir, params["model"], pos, d)
     write_vtm(out / "run.vtm", blocks)
     images = None
     if register_dir is not None:
-        positions = list(problem.gravity)
-        images = export_images(out, Path(register_dir), problem.reference, positions)
-        images["segment_dirs"] = dict(segment_dirs or {})
-        images["input_volumes"] = dict(volumes or {})
-        images["reference"] = problem.reference
-        images["out"] = out
+        images = export_images(out, Path(register_dir), problem.reference, list(problem.gravity))
+        images.update(segment_dirs=dict(segment_dirs or {}), input_volumes=dict(volumes or {}),
+                      reference=problem.reference, out=out)
     if refinement is not None:
         metrics["refinement"] = dict(refinement)
     metrics["files"] = {"paraview": "run.vtm", "positions": blocks, "febio": febio,
@@ -393,3 +372,28 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
                  subject_id=subject_id, images=images, config=config,
                  provenance_path=out / "provenance.json")
     return metrics
+
+
+def _position_outputs(out: Path, problem, sf_dir: Path, model, pos: str, d: Path) -> tuple:
+    """One predicted position's files (meshes, ``<pos>_predicted.ply``, FEBio model); its
+    metrics summary, ParaView block, error-map picture and FEBio entry."""
+    from breastmodel.pipeline.problem import mesh_of
+    from meshing.export import write_ply
+
+    m = json.loads((d / "metrics.json").read_text())
+    with np.load(d / "predicted.npz") as z:
+        pred = {k: z[k] for k in z.files}
+    err = np.asarray(pred["signed_error"], float)
+    summary = {**{k: m[k] for k in _SUMMARY_KEYS if k in m}, "regions": m.get("regions", {}),
+               **({"landmarks": m["landmarks"]} if "landmarks" in m else {})}
+    names = write_position_meshes(out, problem, pos, pred)
+    block = {"mesh": names["mesh"], "predicted skin": names["skin"],
+             "measured skin": names["measured_skin"]}
+    x, nodes = pred["x"], pred["skin_nodes"]
+    faces = np.asarray(mesh_of(problem, len(x)).face_sets["skin"])
+    remap = np.full(len(x), -1, np.int64)
+    remap[nodes] = np.arange(len(nodes))
+    write_ply(x[nodes], remap[faces], out / f"{pos}_predicted.ply")
+    X = pred["X"] if "X" in pred else np.load(sf_dir / "X.npy")
+    return (summary, block, (x[nodes], remap[faces], err, problem.skins[pos]),
+            write_febio(out, problem, model, pos, X))

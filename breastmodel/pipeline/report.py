@@ -1,90 +1,29 @@
-"""A single self-contained HTML report (pictures embedded as base64 PNG)."""
+"""A single self-contained HTML report (pictures embedded as base64 PNG).
+
+The pictures are drawn by :mod:`breastmodel.pipeline.report_figures`; a PNG of the page by
+:func:`screenshot` (:mod:`breastmodel.pipeline.screenshot`, importable from here).
+"""
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import math
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from breastmodel.pipeline.report_figures import (
+    error_figure,
+    history_figure,
+    img_tag,
+    registration_figure,
+    segmentation_figure,
+)
+from breastmodel.pipeline.screenshot import find_chromium, screenshot
+
 __all__ = ["common_error_limit", "find_chromium", "parameter_units", "screenshot", "write_report"]
-
-
-def _png(fig) -> str:
-    import matplotlib.pyplot as plt
-
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-def _error_figure(name: str, v: np.ndarray, f: np.ndarray, err: np.ndarray,
-                  measured: tuple[np.ndarray, np.ndarray], lim: float):
-    """Anterior (x-z) and lateral (y-z) views of the predicted skin coloured by the signed
-    node-to-surface error on the colour scale [-lim, lim] mm (one for every position), with
-    the measured skin's vertices in grey."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.tri import Triangulation
-
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
-    mv = measured[0]
-    for ax, (i, j, title) in zip(axes, [(0, 2, "anterior view: R <- x -> L, z up = S"),
-                                        (1, 2, "lateral view: A <- y -> P, z up = S")]):
-        ax.scatter(mv[:, i], mv[:, j], s=0.2, c="0.75", rasterized=True)
-        tri = Triangulation(v[:, i], v[:, j], f)
-        pc = ax.tripcolor(tri, err, cmap="RdBu_r", vmin=-lim, vmax=lim, shading="gouraud")
-        ax.set_aspect("equal")
-        ax.set_title(title, fontsize=9)
-        ax.set_xlabel(("x" if i == 0 else "y") + " (mm)")
-        ax.set_ylabel("z (mm)")
-    fig.colorbar(pc, ax=axes, shrink=0.85, label="signed error, mm (+ outside measured skin)")
-    fig.suptitle(f"{name}: predicted skin vs measured (grey)")
-    return fig
-
-
-def _history_figure(fit_info: Mapping[str, Any] | None, sf: Mapping[str, Any]):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    n = 2 if fit_info else 1
-    fig, axes = plt.subplots(1, n, figsize=(5 * n, 3.4), squeeze=False)
-    ax = axes[0, 0]
-    hist = sf.get("history") or []
-    if hist:
-        ax.semilogy([r["iteration"] for r in hist], [max(r["mean_error"], 1e-9) for r in hist],
-                    "o-", label="mean")
-        ax.semilogy([r["iteration"] for r in hist], [max(r["max_error"], 1e-9) for r in hist],
-                    "s--", label="max")
-        ax.legend()
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("node mismatch, mm")
-    ax.set_title(f"stress-free: {sf.get('method')}", fontsize=9)
-    if fit_info:
-        ax = axes[0, 1]
-        h = fit_info.get("history", [])
-        y = np.array([r["objective"] if r["objective"] is not None else math.nan for r in h],
-                     float)
-        ax.plot(np.arange(1, len(y) + 1), y, ".", label="evaluation")
-        ok = np.where(np.isfinite(y), y, np.inf)
-        ax.plot(np.arange(1, len(y) + 1), np.minimum.accumulate(ok), "-", label="best so far")
-        ax.set_xlabel("simulation")
-        ax.set_ylabel("mean MHD on calibration positions, mm")
-        ax.set_title(f"fit: {fit_info.get('method')}", fontsize=9)
-        ax.legend()
-    fig.tight_layout()
-    return fig
 
 
 def _fmt(v) -> str:
@@ -130,44 +69,6 @@ def parameter_units(model: Mapping[str, Any], path: str) -> str:
     return "?"
 
 
-def _figure(n: int, width: float = 4.2, height: float = 4.0):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, n, figsize=(width * n, height), squeeze=False)
-    return fig, list(axes[0])
-
-
-def _segmentation_figure(name: str, img, labels, title: str):
-    from imaging.views import centre_index, draw_slice
-
-    fig, axes = _figure(3)
-    for ax, view in zip(axes, ("axial", "coronal", "sagittal")):
-        draw_slice(ax, img, view, centre_index(img, view, labels), labels=labels)
-    fig.suptitle(f"{name}: {title} (orange breast, red muscle, green gland)", fontsize=10)
-    fig.tight_layout()
-    return fig
-
-
-def _registration_figure(name: str, reference, moved, ref_labels, points):
-    from imaging.views import centre_index, draw_slice
-
-    fig, axes = _figure(3)
-    for ax, view in zip(axes, ("axial", "coronal", "sagittal")):
-        draw_slice(ax, reference, view, centre_index(reference, view, ref_labels),
-                   overlay=moved, points=points)
-    fig.suptitle(f"{name} registered onto the reference: reference green, {name} magenta, "
-                 "grey where they agree; cyan: fiducials", fontsize=10)
-    fig.tight_layout()
-    return fig
-
-
-def _img(fig, alt: str) -> str:
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{_png(fig)}">'
-
-
 def _qa_sections(images: Mapping[str, Any]) -> list[str]:
     """Segmentation and registration QA: figures and tables."""
     import SimpleITK as sitk
@@ -188,7 +89,7 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
         img = read_volume(vols[pos])  # a file or a DICOM series folder
         v = tissue_volumes_ml(labels)
         rows.append([pos, *(v.get(k) for k in ("breast", "muscle", "gland"))])
-        parts.append(_img(_segmentation_figure(pos, img, labels, "segmentation"),
+        parts.append(img_tag(segmentation_figure(pos, img, labels, "segmentation"),
                           f"segmentation {pos}"))
     if rows:
         parts.insert(2, _table(["position", "breast (ml)", "muscle (ml)", "gland (ml)"], rows))
@@ -215,7 +116,7 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
     for pos in (reg.get("positions") or {}):
         moved = sitk.ReadImage(str(out / images["volumes"][pos]))
         pts = {f"{k}": v for k, v in (images.get("fiducials", {}).get(pos) or {}).items()}
-        parts.append(_img(_registration_figure(pos, reference, moved, ref_labels, pts),
+        parts.append(img_tag(registration_figure(pos, reference, moved, ref_labels, pts),
                           f"registration {pos}"))
     return parts
 
@@ -308,7 +209,6 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
 
     from breastmodel.config import package_versions, write_atomic
 
-    pos = metrics["positions"]
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
     prov = {}
     if provenance_path is not None and Path(provenance_path).is_file():
@@ -320,6 +220,38 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
              "<h2 id='status'>Run status</h2>",
              _table(["step", "method", "status", "details"],
                     _status_rows(metrics, fit_info, sf))]
+    parts += _parameter_section(params, fit_info, config)
+    parts += _distance_sections(metrics)
+    parts += _error_map_section(pictures)
+    if images:
+        parts += _qa_sections(images)
+    parts += ["<h2 id='history'>Stress-free geometry and fit</h2>",
+              img_tag(history_figure(fit_info, sf), "history")]
+    parts += _fit_sections(fit_info)
+    parts += _file_sections(metrics, images)
+    cfg_file = Path(provenance_path).with_name("config.toml") if provenance_path else None
+    if cfg_file is not None and cfg_file.is_file():
+        parts += ["<h2 id='config'>Configuration (config.toml)</h2>",
+                  f"<pre>{html.escape(cfg_file.read_text())}</pre>"]
+    parts += ["<h2 id='versions'>Versions</h2>",
+              _table(["package", "version"],
+                     [["command", prov.get("command", "-")], *versions.items()])]
+    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto}"
+             "table{border-collapse:collapse;margin:8px 0}"
+             "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}"
+             "pre{background:#f4f4f4;padding:6px;font-size:11px}"
+             "img{max-width:100%}")
+    doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>breastmodel "
+           f"{html.escape(subject_id)}</title><style>{style}</style></head><body>"
+           + "\n".join(parts) + "</body></html>\n")
+    write_atomic(path, doc)
+    return path
+
+
+def _parameter_section(params: Mapping[str, Any], fit_info: Mapping[str, Any] | None,
+                       config: Mapping[str, Any] | None) -> list[str]:
+    """Every parameter with its unit, whether it was fitted, its search range and
+    uncertainty; then what the data cannot determine."""
     model = params.get("model", {})
     bounds = (config or {}).get("fit", {}).get("parameters") or {}
     unc = (fit_info or {}).get("uncertainty") or {}
@@ -333,14 +265,20 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
                      else "fixed", rng,
                      u if u is not None else ("not estimated" if k in bounds and fit_info
                                               else "-")])
-    parts += ["<h2 id='parameters'>Parameters</h2>",
-              _table(["parameter", "value", "unit", "fitted or fixed", "search range",
-                      "uncertainty (1 sd)"], prow)]
-    parts += _identifiability_notes((fit_info or {}).get("identifiability"))
-    parts += ["<h2 id='distances'>Skin surface distances (mm)</h2>",
-              _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
-                     [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),
-                       m.get("p95_mm"), m.get("converged")] for p, m in pos.items()])]
+    parts = ["<h2 id='parameters'>Parameters</h2>",
+             _table(["parameter", "value", "unit", "fitted or fixed", "search range",
+                     "uncertainty (1 sd)"], prow)]
+    return parts + _identifiability_notes((fit_info or {}).get("identifiability"))
+
+
+def _distance_sections(metrics: Mapping[str, Any]) -> list[str]:
+    """Skin surface distances per position, the mesh-refinement check, the per-region table
+    and the internal landmarks' errors."""
+    pos = metrics["positions"]
+    parts = ["<h2 id='distances'>Skin surface distances (mm)</h2>",
+             _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
+                    [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),
+                      m.get("p95_mm"), m.get("converged")] for p, m in pos.items()])]
     parts += _refinement_section(metrics.get("refinement"))
     rows = [[p, r, s.get("n"), s.get("mean_mm"), s.get("mean_signed_mm"), s.get("rmse_mm"),
              s.get("p95_mm"), s.get("max_mm")]
@@ -358,16 +296,24 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
                   _table(["position", "mean error", "max error"], lsum)]
         if lrows:
             parts.append(_table(["position", "landmark", "error"], lrows))
+    return parts
+
+
+def _error_map_section(pictures: Mapping[str, tuple]) -> list[str]:
+    """Every position's error map on one colour scale."""
     lim = common_error_limit([p[2] for p in pictures.values()])
-    parts += ["<h2 id='maps'>Error maps</h2>",
-              f"<p>Signed distance of the predicted skin to the measured skin (+ outside), on "
-              f"one colour scale for every position: &plusmn;{lim:.2f} mm.</p>"]
+    parts = ["<h2 id='maps'>Error maps</h2>",
+             f"<p>Signed distance of the predicted skin to the measured skin (+ outside), on "
+             f"one colour scale for every position: &plusmn;{lim:.2f} mm.</p>"]
     for name, (v, f, err, measured) in pictures.items():
-        parts.append(_img(_error_figure(name, v, f, err, measured, lim), name))
-    if images:
-        parts += _qa_sections(images)
-    parts += ["<h2 id='history'>Stress-free geometry and fit</h2>",
-              _img(_history_figure(fit_info, sf), "history")]
+        parts.append(img_tag(error_figure(name, v, f, err, measured, lim), name))
+    return parts
+
+
+def _fit_sections(fit_info: Mapping[str, Any] | None) -> list[str]:
+    """The fit's best parameters and objective, and the sensitivity at the optimum (no fit:
+    nothing)."""
+    parts = []
     if fit_info:
         best = fit_info.get("best", {})
         rows = [[k, v] for k, v in best.get("params", {}).items()]
@@ -388,6 +334,12 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
         parts += ["<h2>Sensitivity at the optimum</h2>",
                   _table(["parameter", "value", "MHD at -10%", "MHD at +10%",
                           "d ln MHD / d ln p"], srows)]
+    return parts
+
+
+def _file_sections(metrics: Mapping[str, Any], images: Mapping[str, Any] | None) -> list[str]:
+    """The files the run wrote, and its FEBio models."""
+    parts = []
     blocks = (metrics.get("files") or {}).get("positions") or {}
     files = ["run.vtm (ParaView)", *(f for b in blocks.values() for f in b.values()),
              *(e["file"] for e in ((metrics.get("files") or {}).get("febio") or {}).values()
@@ -409,83 +361,4 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
                          [[p, e.get("file") or "not written", e.get("element", "-"),
                            "; ".join(e.get("approximations") or []) or e.get("why") or "none"]
                           for p, e in feb.items()])]
-    cfg_file = Path(provenance_path).with_name("config.toml") if provenance_path else None
-    if cfg_file is not None and cfg_file.is_file():
-        parts += ["<h2 id='config'>Configuration (config.toml)</h2>",
-                  f"<pre>{html.escape(cfg_file.read_text())}</pre>"]
-    parts += ["<h2 id='versions'>Versions</h2>",
-              _table(["package", "version"],
-                     [["command", prov.get("command", "-")], *versions.items()])]
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:auto}"
-             "table{border-collapse:collapse;margin:8px 0}"
-             "td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}"
-             "pre{background:#f4f4f4;padding:6px;font-size:11px}"
-             "img{max-width:100%}")
-    doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>breastmodel "
-           f"{html.escape(subject_id)}</title><style>{style}</style></head><body>"
-           + "\n".join(parts) + "</body></html>\n")
-    write_atomic(path, doc)
-    return path
-
-
-#: Flags for a headless Chromium that touches nothing outside the page.
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu",
-                  "--disable-background-networking", "--no-first-run", "--hide-scrollbars")
-
-
-def find_chromium() -> str | None:
-    """Path of a Chromium (or Chrome) executable on PATH, or None."""
-    import shutil
-
-    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-
-def screenshot(html_path: str | Path, png_path: str | Path, *, width: int = 1200,
-               height: int = 16000, timeout_s: float = 120.0) -> Path:
-    """Render a report page with headless Chromium into a PNG, trimmed of the blank page
-    below the content.
-
-    Parameters
-    ----------
-    html_path : the page (``report.html``)
-    png_path : output PNG
-    width, height : browser window in CSS pixels (height: at least the page's)
-    timeout_s : wall-clock limit for Chromium, s
-
-    Raises
-    ------
-    RuntimeError
-        No Chromium on PATH (Debian: ``apt-get install chromium``), or it wrote no picture.
-    """
-    import subprocess
-    import tempfile
-
-    from PIL import Image
-
-    exe = find_chromium()
-    if exe is None:
-        raise RuntimeError("report: no chromium on PATH to render the report (Debian: "
-                           "apt-get install -y chromium)")
-    png_path = Path(png_path)
-    with tempfile.TemporaryDirectory() as profile:
-        shot = Path(profile) / "page.png"
-        proc = subprocess.run(
-            [exe, *CHROMIUM_FLAGS, f"--user-data-dir={profile}",
-             f"--window-size={width},{height}", f"--screenshot={shot}",
-             Path(html_path).resolve().as_uri()],
-            capture_output=True, text=True, timeout=timeout_s, check=False)
-        if not shot.is_file():
-            raise RuntimeError(f"report: chromium wrote no screenshot of {html_path} (exit "
-                               f"{proc.returncode}): {proc.stderr.strip()[-500:]}")
-        img = Image.open(shot).convert("RGB")
-        a = np.asarray(img)
-        rows = np.flatnonzero((a < 250).any(axis=(1, 2)))
-        bottom = int(rows[-1]) + 20 if len(rows) else a.shape[0]
-        tmp = png_path.with_name(f".{png_path.stem}.tmp.png")
-        img.crop((0, 0, a.shape[1], min(bottom, a.shape[0]))).save(tmp)
-        os.replace(tmp, png_path)
-    return png_path
+    return parts

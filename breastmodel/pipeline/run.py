@@ -8,6 +8,10 @@ Every stage is a :class:`breastmodel.cache.Cache` stage under ``OUT/cache/`` key
 hash of its own settings and its inputs (files by content, upstream stages by key): a rerun
 skips what is done, a killed run resumes at the stage it was in, and a changed model
 parameter recomputes only the stress-free geometry, the predictions and the outputs.
+
+The stage log is :class:`breastmodel.pipeline.runner.Runner`; the bodies of the subject
+stages (segment, register, problem) are here, those of the model stages in
+:mod:`breastmodel.pipeline.model_stages`.
 """
 
 from __future__ import annotations
@@ -23,66 +27,20 @@ from typing import Any
 
 import numpy as np
 
-from breastmodel.cache import Cache, StageKey, stage_key
 from breastmodel.errors import StageError
+from breastmodel.pipeline.model_stages import (
+    check_landmarks,
+    fit_stage,
+    n_tets,
+    predict_stage,
+    stress_free_stage,
+)
+from breastmodel.pipeline.runner import Prepared, Runner, RunResult
 from imaging.labels import BREAST, BREAST_TISSUE, MUSCLE
 
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["Prepared", "RunResult", "cache_of", "prepare_subject", "run_problem", "run_subject"]
-
-
-class RunResult(dict):
-    """``{"stages": [{"name", "key", "status": "ran" | "skipped", "wall_s"}], "metrics",
-    "params", "out"}``."""
-
-
-@dataclass(frozen=True, eq=False)
-class Prepared:
-    """subject, positions (names), runner (stage log), problem_dir, problem_key, and the
-    stage folders of the images (``register_dir``, ``segment_dirs`` {position: folder};
-    None for a given problem)."""
-
-    subject: Any
-    positions: list[str]
-    runner: Any
-    problem_dir: Path
-    problem_key: str
-    register_dir: Path | None = None
-    segment_dirs: Mapping[str, Path] | None = None
-    problem_inputs: tuple = ()  # what the problem stage was keyed on (registration, landmarks)
-
-
-class _Runner:
-    def __init__(self, out: Path, progress: bool, cache: Path | None = None):
-        self.cache_root = Path(cache).resolve() if cache else (out / "cache").resolve()
-        self.cache = Cache(self.cache_root)
-        self.stages: list[dict] = []
-        self.progress = progress
-
-    def stage(self, name: str, config: Mapping[str, Any], inputs, fn: Callable[[Path], None],
-              *, label: str | None = None) -> tuple[Path, StageKey]:
-        key = stage_key(name, config, inputs)
-        label = label or name
-        done = self.cache.done(name, key)
-        t0 = time.perf_counter()
-        if self.progress:
-            print(f"[{len(self.stages) + 1:2d}] {label:<26s} "
-                  f"{'cached' if done else 'running...'}", flush=True)
-        try:
-            path = self.cache.run(name, key, fn, config=config)
-        except Exception as exc:
-            # the stages so far travel with the error, so a caller can report what ran
-            failed = {"name": name, "label": label, "key": str(key), "status": "failed",
-                      "wall_s": round(time.perf_counter() - t0, 3)}
-            exc.stages = [*self.stages, failed]
-            raise
-        wall = time.perf_counter() - t0
-        if self.progress and not done:
-            print(f"     {label:<26s} done in {wall:.1f} s", flush=True)
-        self.stages.append({"name": name, "label": label, "key": str(key),
-                            "status": "skipped" if done else "ran", "wall_s": round(wall, 3)})
-        return path, key
 
 
 # ---------------------------------------------------------------- stage bodies
@@ -199,74 +157,6 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
     return fn
 
 
-def _fit(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, Any], out: Path,
-         progress: bool):
-    def fn(d: Path) -> None:
-        from breastmodel.config import write_json
-        from breastmodel.pipeline.fit import fit_parameters, fit_work_dir
-
-        res = fit_parameters(problem_dir, settings, cfg["fit"],
-                             work_dir=fit_work_dir(out / "fit", problem_dir, settings),
-                             progress=progress)
-        write_json(d / "fit.json", res)
-    return fn
-
-
-def _stress_free(problem_dir: Path, cfg: Mapping[str, Any], model: Mapping[str, Any],
-                 progress: bool):
-    def show(row: dict) -> None:
-        print(f"     iteration {row['iteration']:2d}: node mismatch mean "
-              f"{row['mean_error']:.4f} mm, max {row['max_error']:.4f} mm", flush=True)
-
-    def fn(d: Path) -> None:
-        from breastmodel.config import write_json
-        from breastmodel.pipeline.problem import load_problem, stress_free_geometry
-        from mechanics.solver import SolverError
-
-        problem = load_problem(problem_dir)
-        try:
-            X, info = stress_free_geometry(problem, model, cfg["stress_free"], cfg["solver"],
-                                           callback=show if progress else None)
-        except SolverError as exc:
-            raise StageError("stress-free", f"forward solve failed: {exc}") from None
-        np.save(d / "X.npy", X)
-        write_json(d / "stress_free.json", info)
-    return fn
-
-
-def _predict(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[str, Any],
-             model: Mapping[str, Any]):
-    def fn(d: Path) -> None:
-        from breastmodel.config import write_json
-        from breastmodel.pipeline.problem import load_problem, predict_position, score_position
-        from mechanics.solver import SolverError
-
-        problem = load_problem(problem_dir)
-        X = np.load(sf_dir / "X.npy")
-        error = verdict = None
-        try:
-            state = predict_position(problem, model, X, position, cfg["solver"])
-        except SolverError as exc:
-            if exc.state is None:
-                raise StageError("predict", f"position {position!r}: {exc}") from None
-            state, error, verdict = exc.state, str(exc), exc.verdict
-            log.warning("predict: %s %s (%s); scoring the last converged state", position,
-                        "has no equilibrium" if verdict else "did not converge", exc)
-        x = state.x
-        m = score_position(problem, x, position, details=True)
-        fields = {"X": state.X, "stress": np.asarray(state.stress).reshape(-1, 9),
-                  "J": state.J}
-        if state.pressure is not None:
-            fields["pressure"] = state.pressure
-        np.savez(d / "predicted.npz", x=x, signed_error=m.pop("signed_error"),
-                 skin_nodes=m.pop("skin_nodes"), **fields)
-        m.update(converged=bool(state.converged), load_reached=float(state.load),
-                 newton_iterations=state.newton_iterations, error=error, verdict=verdict,
-                 max_displacement_mm=float(state.max_displacement()))
-        write_json(d / "metrics.json", m)
-    return fn
-
-
 # ---------------------------------------------------------------- the pipeline
 
 
@@ -312,7 +202,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     positions = _check_subject(subject, cfg)
     out.mkdir(parents=True, exist_ok=True)
     write_provenance(out, {"subject": str(subject_dir), **cfg}, command=command)
-    R = _Runner(out, progress, cache)
+    R = Runner(out, progress, cache)
 
     seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
     seg_dirs, seg_keys = {}, []
@@ -383,7 +273,7 @@ def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     meta = json.loads((problem_dir / "problem.json").read_text())
     out.mkdir(parents=True, exist_ok=True)
     write_provenance(out, {"subject": subject_id, **cfg}, command="run")
-    R = _Runner(out, progress, cache)
+    R = Runner(out, progress, cache)
 
     def copy(d: Path) -> None:
         shutil.copytree(problem_dir, d, dirs_exist_ok=True)
@@ -392,21 +282,6 @@ def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     subject = _ProblemSubject(subject_id, meta["reference"])
     prep = Prepared(subject, list(meta["gravity"]), R, prob_dir, prob_key)
     return _model_stages(prep, cfg, out, t0)
-
-
-def _check_landmarks(problem_dir: Path, settings: Mapping[str, Any]) -> None:
-    """A fit that sees the landmarks needs some in the reference and in every calibration
-    position: fail before the first solve otherwise."""
-    if "landmarks" not in settings["sees"]:
-        return
-    meta = json.loads((problem_dir / "problem.json").read_text())
-    lm = meta.get("landmarks", {})
-    ref = set(lm.get(meta["reference"], {}))
-    missing = [p for p in settings["calibrate"] if not ref & set(lm.get(p, {}))]
-    if missing:
-        raise StageError("fit", f"[fit] sees = {settings['sees']} needs landmarks known in "
-                         f"the reference ({meta['reference']}) and in {missing} "
-                         "(landmarks.csv in the subject folder)", problem_dir / "problem.json")
 
 
 def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str, Any],
@@ -431,23 +306,18 @@ def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str
                                  label=f"refinement: mesh {h / 2:g} mm")
     sf_dir, sf_key = R.stage("stress_free", {"model": model, "stress_free": cfg["stress_free"],
                                              "solver": cfg["solver"]}, [prob_key],
-                             _stress_free(prob_dir, cfg, model, R.progress),
+                             stress_free_stage(prob_dir, cfg, model, R.progress),
                              label="refinement: stress-free")
     out = {"size_mm": h, "fine_size_mm": h / 2, "positions": {},
-           "n_tets": _n_tets(prep.problem_dir), "fine_n_tets": _n_tets(prob_dir)}
+           "n_tets": n_tets(prep.problem_dir), "fine_n_tets": n_tets(prob_dir)}
     for pos, d in pred_dirs.items():
         fd, _ = R.stage("predict", {"position": pos, "model": model, "solver": cfg["solver"]},
-                        [prob_key, sf_key], _predict(prob_dir, sf_dir, pos, cfg, model),
+                        [prob_key, sf_key], predict_stage(prob_dir, sf_dir, pos, cfg, model),
                         label=f"refinement: predict {pos}")
         a = json.loads((d / "metrics.json").read_text())["mhd_mm"]
         b = json.loads((fd / "metrics.json").read_text())["mhd_mm"]
         out["positions"][pos] = {"mhd_mm": a, "fine_mhd_mm": b, "change_mm": b - a}
     return out
-
-
-def _n_tets(problem_dir: Path) -> int:
-    with np.load(problem_dir / "mesh.npz") as z:
-        return int(len(z["tets"]))
 
 
 @dataclass(frozen=True)
@@ -469,22 +339,22 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
     fit_info = None
     if cfg["fit"]["enabled"]:
         settings = fit_settings(cfg, positions, subject.reference)
-        _check_landmarks(prob_dir, settings)
+        check_landmarks(prob_dir, settings)
         fit_dir, _ = R.stage("fit", {"settings": settings, "fit": {
             k: v for k, v in cfg["fit"].items() if k not in ("n_workers", "scheduler")}},
-            [prob_key], _fit(prob_dir, cfg, settings, out, R.progress))
+            [prob_key], fit_stage(prob_dir, cfg, settings, out, R.progress))
         fit_info = json.loads((fit_dir / "fit.json").read_text())
         model = set_params(model, fit_info["best"]["params"])
 
     sf_cfg = {"model": model, "stress_free": cfg["stress_free"], "solver": cfg["solver"]}
     sf_dir, sf_key = R.stage("stress_free", sf_cfg, [prob_key],
-                             _stress_free(prob_dir, cfg, model, R.progress),
+                             stress_free_stage(prob_dir, cfg, model, R.progress),
                              label=f"stress-free ({cfg['stress_free']['method']})")
     pred_dirs = {}
     for pos in cfg["evaluate"]["positions"] or positions:
         pred_dirs[pos], _ = R.stage("predict", {"position": pos, "model": model,
                                                 "solver": cfg["solver"]},
-                                    [prob_key, sf_key], _predict(prob_dir, sf_dir, pos, cfg,
+                                    [prob_key, sf_key], predict_stage(prob_dir, sf_dir, pos, cfg,
                                                                  model),
                                     label=f"predict {pos}")
 

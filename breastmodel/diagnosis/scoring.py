@@ -1,0 +1,129 @@
+"""Scoring the diagnosis' candidates: each one's columns of the linear model, its bounded
+re-fit with the fitted parameters, the Delta BIC it is ranked by, and whether it explains more
+than the noise (the thresholds below; see :mod:`breastmodel.diagnosis.missing`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from breastmodel.diagnosis.candidates import Candidate
+from breastmodel.diagnosis.measurement import measurement_columns, rigid_transform
+from breastmodel.diagnosis.residual import Baseline, Linearisation, delta_bic, rms
+
+if TYPE_CHECKING:
+    from breastmodel.diagnosis.missing import Plan
+
+#: A candidate must lower the residual RMS by this fraction of the noise floor ...
+SIGNIFICANT_FLOOR_FRACTION = 0.25
+#: ... and by at least this much, mm ...
+SIGNIFICANT_MIN_MM = 0.02
+#: ... and remove at least this fraction of the baseline's squared residual ...
+SIGNIFICANT_EXPLAINED = 0.2
+#: ... and lower the Bayesian information criterion by more than this ("strong" evidence on
+#: the scale of Kass & Raftery 1995).
+SIGNIFICANT_BIC = 6.0
+
+
+def score_candidates(candidates: Sequence[Candidate], lin: Linearisation, base: Baseline,
+                      plan: Plan, geometry: dict) -> tuple[list, list, dict]:
+    """Every candidate re-fitted by the linear model: the ranking (best first, by Delta BIC),
+    the candidates whose evaluation failed, and each one's predicted change of the residual
+    {name: (n,) mm}."""
+    ranking, failed = [], []
+    corrections: dict[str, np.ndarray] = {}
+    for c in candidates:
+        cols = _columns(c, lin, plan, geometry)
+        if isinstance(cols, dict):
+            failed.append(cols)
+            continue
+        entry, corrections[c.name] = _score(c, cols, lin, base, plan, geometry)
+        ranking.append(entry)
+    ranking.sort(key=lambda r: r["delta_bic"])
+    return ranking, failed, corrections
+
+
+def _failure(c: Candidate, lin: Linearisation, variant: str) -> dict:
+    r = lin.records[variant]
+    return {"name": c.name, "kind": c.kind, "doc": c.doc, "evaluation": variant,
+            "error": r["error"], "seconds": r.get("wall_s")}
+
+
+def _columns(c: Candidate, lin: Linearisation, plan: Plan, geometry: dict):
+    """The candidate's columns of the linear model (cols, lo, hi, labels): the measurement's
+    exact derivatives, the switch-on ``amplitude`` and its parameters' log derivatives; or
+    the failure record of the first variant that did not evaluate."""
+    cols, lo, hi, labels = [], [], [], []
+    rc = lin.r0
+    if c.measurement:
+        cols, lo, hi, labels = measurement_columns(c, geometry, lin.obj_pos)
+    if c.effects:
+        rc = lin.vec(f"cand|{c.name}")
+        if rc is None:
+            return _failure(c, lin, f"cand|{c.name}")
+        cols.append(rc - lin.r0)
+        lo.append(c.amplitude[0])
+        hi.append(c.amplitude[1])
+        labels.append("amplitude")
+    for f, (flo, fhi) in c.free.items():
+        rf = lin.vec(f"cand|{c.name}|{f}")
+        if rf is None:
+            return _failure(c, lin, f"cand|{c.name}|{f}")
+        cols.append((rf - rc) / plan.steps[f"cand|{c.name}|{f}"])
+        v0 = float(c.start[f])
+        lo.append(math.log(max(flo, 1e-3 * v0) / v0))
+        hi.append(math.log(fhi / v0))
+        labels.append(f)
+    return cols, lo, hi, labels
+
+
+def _score(c: Candidate, columns, lin: Linearisation, base: Baseline, plan: Plan,
+           geometry: dict) -> tuple[dict, np.ndarray]:
+    """The ranking entry of one candidate and its predicted change of the residual."""
+    cols, lo, hi, labels = columns
+    r_c, z_theta, z = lin.solve(cols, lo, hi, inert=c.replaces)
+    ss = float(r_c @ r_c)
+    z_c = dict(zip(labels, z))
+    est = {q: plan.theta0[q] * math.exp(zq) for q, zq in z_theta.items()}
+    est.update({f: float(c.start[f]) * math.exp(z_c[f]) for f in c.free})
+    if c.measurement:
+        est.update({f"measured.{k}": float(v) for k, v in z_c.items()})
+    explained = 1.0 - ss / base.ss_base if base.ss_base > 0 else 0.0
+    drop = base.rms_base - rms(r_c)
+    k_added = max(len(cols), 1)
+    dbic = delta_bic(ss, base.ss_base, base.n_eff, k_added)
+    regions_after = lin.per_region(r_c)
+    gains = sorted(((base.regions[k] - regions_after[k], k) for k in base.regions),
+                   reverse=True)
+    entry = {
+        **c.to_dict(),
+        "explained": explained,
+        "predicted_rms_mm": rms(r_c),
+        "rms_drop_mm": drop,
+        "predicted": lin.per_position(r_c),
+        "amount": float(z_c.get("amplitude", 1.0 if c.effects else 0.0)),
+        "estimate": est,
+        "n_parameters": k_added,
+        "delta_bic": dbic,
+        "evidence": [{"where": k, "rms_before_mm": base.regions[k],
+                      "rms_after_mm": regions_after[k]} for g, k in gains[:4] if g > 0],
+        "significant": bool(drop > max(SIGNIFICANT_FLOOR_FRACTION * base.floor,
+                                       SIGNIFICANT_MIN_MM)
+                            and explained >= SIGNIFICANT_EXPLAINED
+                            and dbic < -SIGNIFICANT_BIC),
+    }
+    acts = set(c.acts_on) if c.measurement and c.acts_on else set(lin.obj_pos)
+    if base.held_out and acts & set(base.calibrate):
+        r_h = lin.solve(cols, lo, hi, inert=c.replaces, rows=base.cal_rows)[0]
+        entry["held_out"] = {
+            p: {"rms_before_mm": rms(base.r_base_cal[lin.slices[p]]),
+                "rms_after_mm": rms(r_h[lin.slices[p]])} for p in base.held_out}
+        entry["held_out_improves"] = bool(all(
+            v["rms_after_mm"] < v["rms_before_mm"] for v in entry["held_out"].values()))
+    if c.measurement == "rigid":
+        entry["transform"] = rigid_transform(z_c, geometry[c.acts_on[0]]["y"])
+    return entry, r_c - base.r_base

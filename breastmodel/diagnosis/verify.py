@@ -1,0 +1,116 @@
+"""The nonlinear check of the diagnosis' best candidates: a short least-squares re-fit.
+
+A physical candidate is switched on and re-fitted with the fitted parameters from its linear
+estimate (:func:`verify_effect`); an error of the measurement is corrected in a copy of the
+problem folder, where the fitted parameters are re-fitted (:func:`verify_measurement`).
+Both return the best evaluation's MHD per position and parameters, or the error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.diagnosis.candidates import Candidate
+from breastmodel.diagnosis.evaluations import fit_bounds, model_hash
+
+
+def verify_effect(c: Candidate, estimate: Mapping[str, float], run, cfg, model, fitted, obj_pos,
+            positions, work_dir: Path, budget: int, progress: bool) -> dict:
+    """Switch ``c`` on and re-fit its parameters and the (not inert) fitted ones by least
+    squares on the scored positions, from the linear estimate. Returns the best
+    evaluation's MHD per position and parameters, or the error."""
+    from breastmodel.pipeline.config import set_params
+    from breastmodel.pipeline.fit import least_squares
+
+    params = {q: dict(zip(("min", "max"), fit_bounds(cfg, q))) for q in fitted
+              if not set(q.split("|")) & set(c.replaces)}
+    params.update({f: {"min": lo, "max": hi} for f, (lo, hi) in c.free.items()})
+    start = {**c.start, **estimate}
+    x0 = {p: min(max(float(start[p]), spec["min"]), spec["max"]) for p, spec in params.items()
+          if p in start}
+    settings = {"model": set_params(c.apply(model), start), "solver": cfg["solver"],
+                "stress_free": cfg["stress_free"], "calibrate": list(obj_pos),
+                "evaluate": [p for p in positions if p not in obj_pos]}
+    folder = work_dir / f"verify-{c.name.replace(':', '_')}-{model_hash(settings)}"
+    try:
+        if not params:  # nothing to re-fit: one evaluation
+            from breastmodel.pipeline.problem import evaluate_params
+
+            rec = evaluate_params({}, run.problem_dir, settings)
+            if rec["error"]:
+                return {"error": rec["error"]}
+            return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"],
+                    "params": {}, "evaluations": 1}
+        res = least_squares(run.problem_dir, settings, params, budget=budget,
+                            work_dir=folder, progress=progress,
+                            x0=x0 if len(x0) == len(params) else None)
+    except RuntimeError as exc:  # every evaluation failed
+        return {"error": str(exc)}
+    best = res["best"]
+    return {"mhd_mm": best["mhd_mm"], "objective_mm": best["objective"],
+            "params": best["params"], "evaluations": res["n_simulations"]}
+
+
+def corrected_problem(problem_dir: Path, out: Path, moves: Mapping[str, Any]) -> Path:
+    """A copy of the problem folder whose measured skins are moved by ``moves`` (position ->
+    callable (vertices, triangles) -> vertices)."""
+    import shutil
+
+    from breastmodel.pipeline.problem import forget_problem
+
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(problem_dir, out)
+    for p, move in moves.items():
+        with np.load(out / f"{p}_skin.npz") as z:
+            v, t = z["vertices"].copy(), z["triangles"].copy()
+        np.savez(out / f"{p}_skin.npz", vertices=move(v, t), triangles=t)
+    forget_problem(out)
+    return out
+
+
+def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, cfg, model, fitted,
+                        obj_pos, positions, work_dir: Path, budget: int,
+                        progress: bool) -> dict:
+    """Correct the measured skin as estimated (rigid motion exact, offset along the vertex
+    normals) in a copy of the problem, and re-fit the fitted parameters there by least
+    squares (at most ``budget`` evaluations)."""
+    from breastmodel.diagnosis.measurement import _vertex_normals
+    from breastmodel.pipeline.fit import least_squares
+    from breastmodel.pipeline.problem import evaluate_params
+
+    if c.measurement == "rigid":
+        tr = entry["transform"]
+        R, t, ctr = (np.asarray(tr[k]) for k in ("rotation", "translation", "centre"))
+        moves = {c.acts_on[0]: lambda v, tri: ctr + (v - ctr) @ R.T + t}
+    else:
+        s = float(entry["estimate"]["measured.offset_mm"])
+        moves = {p: (lambda v, tri: v + s * _vertex_normals(v, tri)) for p in c.acts_on}
+    folder = work_dir / f"verify-{c.name.replace(':', '_')}-{model_hash(dict(entry['estimate']))}"
+    prob = corrected_problem(Path(run.problem_dir), folder / "problem", moves)
+    settings = {"model": model, "solver": cfg["solver"], "stress_free": cfg["stress_free"],
+                "calibrate": list(obj_pos), "evaluate": [p for p in positions
+                                                          if p not in obj_pos]}
+    params = {q: dict(zip(("min", "max"), fit_bounds(cfg, q))) for q in fitted}
+    try:
+        if not params:
+            rec = evaluate_params({}, prob, settings)
+            if rec["error"]:
+                return {"error": rec["error"]}
+            return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"], "params": {},
+                    "evaluations": 1}
+        from breastmodel.pipeline.config import get_param
+
+        x0 = {q: min(max(float(get_param(model, q)), p["min"]), p["max"])
+              for q, p in params.items()}
+        res = least_squares(prob, settings, params, budget=budget, work_dir=folder / "fit",
+                            progress=progress, x0=x0)
+    except RuntimeError as exc:
+        return {"error": str(exc)}
+    best = res["best"]
+    return {"mhd_mm": best["mhd_mm"], "objective_mm": best["objective"],
+            "params": best["params"], "evaluations": res["n_simulations"]}
