@@ -1,40 +1,35 @@
 """``breastmodel simulate MESH.vtu --config sim.toml --out DIR``: solve any tet mesh.
 
-The mesh is a VTU with cell data ``region`` (int) and one 0/1 point-data array per named
-node set. The config (TOML)::
+The mesh is a VTU with cell data ``region`` (int, the codes of ``mechanics.mesh.REGIONS``)
+and one 0/1 point-data array per named node set. The config (TOML) holds ``run.toml``'s
+``[model]`` and ``[solver]`` tables (same keys, defaults and validation; see
+``examples/run.toml``) and the one load case of this solve::
 
-    [materials.1]              # region code -> material (name + parameters)
-    name = "neo_hookean"       # "neo_hookean", "gent" (add Jm) or "linear"
-    E = 1.0                    # kPa
-    nu = 0.49
-
-    [[supports]]               # Dirichlet conditions, one table per node set
-    node_set = "fixed"
-    components = [0, 1, 2]     # default: all
-    # values = [0.0, 0.0, -2.0]  # optional prescribed displacement at full load, mm
-
-    [gravity]                  # optional
-    direction = [0, 0, -1]     # unit vector in the mesh frame
+    [model]
+    formulation = "anp"        # "anp" (locking-free) | "standard"
     density = 1000.0           # kg/m^3
     g = 9.81                   # m/s^2
 
-    [[point_loads]]            # optional
-    node_set = "tip"
-    force = [0.0, 0.0, -1.0]   # mN per node
+    [model.materials.breast_left]   # region name -> material (name + parameters); listing
+    name = "neo_hookean"            # materials replaces the defaults (breasts 1 kPa, muscle
+    E = 1.0                         # 10 kPa, nu 0.49); gland regions inherit their side's
+    nu = 0.49                       # breast material
 
-    [effects.skin]             # optional: any registered effect by name, with its keywords
+    [model.effects.fixed]      # any registered effect by name, with its keywords; listing
+    node_set = "fixed"         # effects replaces the default (node set "fixed" held);
+                               # several: [[model.effects.point_load]] node_set, force (mN)
 
-    [solver]                   # optional; defaults shown
-    tol = 1e-8                 # relative residual
-    max_newton = 20
-    initial_steps = 1
-    min_step = 1e-4
-    max_cutbacks = 20
-    linear_solver = "auto"     # "auto" | "scipy" | "pardiso"
-    formulation = "anp"        # "anp" (locking-free) | "standard"
-    threads = 4                # PARDISO's threads; default: env BREASTMODEL_THREADS, else
-                               # the cores this process may run on
-    # and any other field of mechanics.solver.SolverOptions
+    [gravity]                  # optional: this solve's gravity (density and g from [model])
+    direction = [0, 0, -1]     # unit vector in the mesh frame
+
+    [solver]                   # optional; run.toml's defaults: tol 1e-6, max_newton 25,
+    linear_solver = "auto"     # initial_steps 2, max_cutbacks 12; "auto" | "scipy" |
+    threads = 4                # "pardiso"; threads: PARDISO's (default env
+                               # BREASTMODEL_THREADS, else the cores this process may use)
+
+The former dialect (``[materials.<region code>]``, ``[[supports]]``, ``[gravity]`` with
+density and g, ``[[point_loads]]``, ``[effects.NAME]``, ``formulation`` in ``[solver]``) is
+still read, with a FutureWarning naming the new form.
 
 DIR receives ``result.vtu`` (point data ``displacement`` in mm, cell data stress, J,
 stretch), ``solve.json`` (converged, load reached, load steps, Newton iterations, wall time,
@@ -48,16 +43,27 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 log = logging.getLogger("breastmodel.simulate")
 
-_TOP_KEYS = ("materials", "supports", "gravity", "point_loads", "effects", "solver")
+#: Tables of a simulate config: run.toml's model and solver, and this solve's gravity.
+_TOP_KEYS = ("model", "solver", "gravity")
+_RUN_TABLES = ("model", "solver")
+_GRAVITY_KEYS = ("direction", "regions", "density_by_region")
+#: Tables of the former dialect, and those that only it has.
+_FORMER_TOP_KEYS = ("materials", "supports", "gravity", "point_loads", "effects", "solver")
+_FORMER_ONLY_KEYS = ("materials", "supports", "point_loads", "effects")
 
 
 def solver_keys() -> tuple[str, ...]:
-    """Keys of the ``[solver]`` table: the fields of ``SolverOptions`` and ``formulation``."""
+    """Keys of the former dialect's ``[solver]`` table: the fields of ``SolverOptions`` and
+    ``formulation``."""
     from dataclasses import fields
 
     from mechanics.solver import SolverOptions
@@ -116,12 +122,65 @@ def cost_table(summary: dict[str, Any]) -> str:
     return "\n".join(rows)
 
 
+@dataclass(frozen=True)
+class SimulateInputs:
+    """A validated simulate config: ``materials`` (region codes -> material dict, for the
+    codes of a mesh), ``effects`` (name -> keywords, gravity included), solver ``options``,
+    ``formulation`` and ``record`` (the config as written beside the results)."""
+
+    materials: Callable[[np.ndarray], dict[int, dict]]
+    effects: dict[str, Any]
+    options: Any
+    formulation: str
+    record: dict[str, Any]
+
+
+def simulate_inputs(config: Mapping[str, Any], *,
+                    where: str = "simulate config") -> SimulateInputs:
+    """Validate a simulate config: ``[model]`` and ``[solver]`` as ``run.toml``'s
+    (:func:`breastmodel.pipeline.config.resolve_config`: defaults, bounds, messages naming
+    ``where``, the table and the key) and the optional ``[gravity]`` load case. A config in
+    the former dialect (materials keyed by region code) is read as before, with a
+    FutureWarning.
+
+    Raises
+    ------
+    ConfigError
+        Unknown table or key, or a bad model, solver or gravity table.
+    """
+    from breastmodel.config import ConfigError, check_keys
+    from breastmodel.pipeline.config import materials_by_code, resolve_config
+    from breastmodel.pipeline.problem import solver_options
+
+    if "model" not in config and any(k in config for k in _FORMER_ONLY_KEYS):
+        return _former_inputs(config, where=where)
+    check_keys(config, _TOP_KEYS, where=where)
+    for name, table in config.items():
+        if not isinstance(table, Mapping):
+            raise ConfigError(f"{where}: [{name}] must be a table")
+    cfg = resolve_config({k: v for k, v in config.items() if k in _RUN_TABLES}, where=where)
+    model = cfg["model"]
+    record = {"model": model, "solver": cfg["solver"]}
+    effects = dict(model["effects"])
+    if "gravity" in config:
+        gravity = dict(config["gravity"])
+        check_keys(gravity, _GRAVITY_KEYS, where=f"{where} [gravity]")
+        if "direction" not in gravity:
+            raise ConfigError(f"{where} [gravity] needs a 'direction'")
+        record["gravity"] = gravity
+        effects["gravity"] = {**gravity, "density": float(model["density"]),
+                              "g": float(model["g"])}
+    return SimulateInputs(lambda region: materials_by_code(model, np.unique(region)), effects,
+                          solver_options(cfg["solver"]), model["formulation"], record)
+
+
 def model_inputs(config: dict[str, Any], *, where: str = "simulate config"):
-    """(materials, effects, solver options, formulation) from a config dict."""
+    """(materials, effects, solver options, formulation) from a config dict in the former
+    dialect (materials keyed by region code)."""
     from breastmodel.config import ConfigError, check_keys
     from mechanics.solver import SolverOptions
 
-    check_keys(config, _TOP_KEYS, where=where)
+    check_keys(config, _FORMER_TOP_KEYS, where=where)
     mats_cfg = config.get("materials")
     if not mats_cfg:
         raise ConfigError(f"{where}: [materials.<region>] is required")
@@ -154,6 +213,21 @@ def model_inputs(config: dict[str, Any], *, where: str = "simulate config"):
     return materials, effects, SolverOptions(**solver_cfg), formulation
 
 
+def _former_inputs(config: Mapping[str, Any], *, where: str) -> SimulateInputs:
+    """:class:`SimulateInputs` of a former-dialect config, with a FutureWarning."""
+    import warnings
+
+    warnings.warn(f"{where}: [materials.<region code>], [[supports]], [[point_loads]] and "
+                  "[effects.NAME] are deprecated; write run.toml's tables instead: "
+                  "[model.materials.<region name>], [model.effects.fixed] (supports), "
+                  "[model.effects.point_load], [model.effects.NAME], density and g in "
+                  "[model], formulation in [model], [gravity] direction",
+                  FutureWarning, stacklevel=3)
+    materials, effects, options, formulation = model_inputs(dict(config), where=where)
+    return SimulateInputs(lambda region: materials, effects, options, formulation,
+                          dict(config))
+
+
 def simulate_file(mesh_path: Path, config: dict[str, Any], out: Path, *,
                   config_path: Path | None = None) -> dict[str, Any]:
     """Solve ``mesh_path`` with ``config``; write result.vtu, solve.json, provenance."""
@@ -164,19 +238,20 @@ def simulate_file(mesh_path: Path, config: dict[str, Any], out: Path, *,
     from meshing.export import read_vtu, write_vtu
 
     where = f"simulate config {config_path}" if config_path else "simulate config"
-    materials, effects, options, formulation = model_inputs(config, where=where)
+    inputs = simulate_inputs(config, where=where)
     mesh = read_vtu(mesh_path)
     try:
-        model = build_model(mesh, materials, effects, formulation=formulation)
+        model = build_model(mesh, inputs.materials(mesh.region), inputs.effects,
+                            formulation=inputs.formulation)
     except ValueError as exc:
         raise ValueError(f"simulate [{mesh_path}]: {exc}") from None
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_provenance(out, config, command=f"simulate {mesh_path}")
+    write_provenance(out, inputs.record, command=f"simulate {mesh_path}")
     t0 = time.perf_counter()
     error = None
     try:
-        state = solve(model, options=options)
+        state = solve(model, options=inputs.options)
     except SolverError as exc:
         state, error = exc.state, exc
     summary = {
@@ -202,13 +277,18 @@ def simulate_file(mesh_path: Path, config: dict[str, Any], out: Path, *,
     return summary
 
 
-#: Materials of the demo (breast regions Neo-Hookean 1 kPa, muscle 10 kPa, nu 0.49).
+#: Model of the demo: run.toml's default materials (breast regions Neo-Hookean 1 kPa, muscle
+#: 10 kPa, nu 0.49; gland inherits its side's breast) and supports (node set "fixed"), solved
+#: with ``SolverOptions``' defaults.
 DEMO_CONFIG = {
-    "materials": {
-        str(c): {"name": "neo_hookean", "E": 10.0 if c == 2 else 1.0, "nu": 0.49}
-        for c in (1, 2, 3, 4, 5)
+    "model": {
+        "materials": {
+            name: {"name": "neo_hookean", "E": 10.0 if name == "muscle" else 1.0, "nu": 0.49}
+            for name in ("breast_left", "muscle", "breast_right")
+        },
+        "effects": {"fixed": {"node_set": "fixed"}},
     },
-    "supports": [{"node_set": "fixed"}],
+    "solver": {"tol": 1e-8, "max_newton": 20, "initial_steps": 1, "max_cutbacks": 20},
 }
 
 
@@ -222,10 +302,12 @@ def simulate_positions(mesh_path: Path, reg_dir: Path, out: Path,
 
     gravity = json.loads((Path(reg_dir) / "gravity.json").read_text())
     base = dict(config or DEMO_CONFIG)
+    # The former dialect carries density and g in [gravity]; the new one in [model].
+    former = "model" not in base and any(k in base for k in _FORMER_ONLY_KEYS)
+    water = {"density": 1000.0, "g": 9.81} if former else {}
     summary = {}
     for name, direction in gravity.items():
-        cfg = {**base, "gravity": {"direction": list(direction), "density": 1000.0,
-                                   "g": 9.81}}
+        cfg = {**base, "gravity": {"direction": list(direction), **water}}
         s = simulate_file(Path(mesh_path), cfg, Path(out) / name)
         summary[name] = {k: s[k] for k in ("converged", "max_displacement_mm",
                                            "newton_iterations", "wall_time_s", "load_steps")}

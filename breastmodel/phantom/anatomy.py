@@ -13,7 +13,8 @@ whose field of view ends at the pectoralis.
 
 The anatomy is a small constructive description made of primitives that can both test point
 membership (for voxelisation) and give exact chord intervals along y (for reference volumes
-that do not depend on any voxel grid), see :func:`reference_volumes`.
+that do not depend on any voxel grid), see :func:`reference_volumes`. The primitives are in
+:mod:`breastmodel.phantom.shapes`, the grid-free volumes in :mod:`breastmodel.phantom.volumes`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from breastmodel.phantom.shapes import Box, EllipticCylinderZ, Superellipsoid
+from breastmodel.phantom.volumes import reference_volumes
 
 __all__ = [
     "AIR", "FAT", "MUSCLE", "GLAND", "SKIN", "MARKER", "THORAX", "TISSUE_NAMES",
@@ -31,154 +35,6 @@ __all__ = [
 #: Fine tissue codes of the truth label volumes.
 AIR, FAT, MUSCLE, GLAND, SKIN, MARKER, THORAX = range(7)
 TISSUE_NAMES = ("air", "fat", "muscle", "gland", "skin", "marker", "thorax")
-
-
-@dataclass(frozen=True)
-class EllipticCylinderZ:
-    """Infinite elliptic cylinder along z: ((x-cx)/a)^2 + ((y-cy)/b)^2 <= 1 (mm)."""
-
-    center: tuple[float, float]
-    radii: tuple[float, float]
-
-    def contains(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Membership of points given by coordinate arrays (mm)."""
-        u = (x - float(self.center[0])) * (1.0 / self.radii[0])
-        v = (y - float(self.center[1])) * (1.0 / self.radii[1])
-        u *= u
-        v *= v
-        u += v
-        return u <= 1.0
-
-    @property
-    def z_range(self) -> tuple[float, float]:
-        return (-np.inf, np.inf)
-
-    def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty."""
-        u = (x - self.center[0]) / self.radii[0]
-        r = 1.0 - u * u
-        h = np.where(r >= 0, self.radii[1] * np.sqrt(np.clip(r, 0, None)), np.nan)
-        return self.center[1] - h, self.center[1] + h
-
-    @property
-    def volume_per_mm(self) -> float:
-        """Cross-section area, mm^2 (volume per mm of length)."""
-        return float(np.pi * self.radii[0] * self.radii[1])
-
-
-@dataclass(frozen=True)
-class Box:
-    """Axis-aligned box [lo, hi] (mm)."""
-
-    lo: tuple[float, float, float]
-    hi: tuple[float, float, float]
-
-    def contains(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Membership of points given by coordinate arrays (mm)."""
-        lo, hi = [float(v) for v in self.lo], [float(v) for v in self.hi]
-        return (x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]) & (z >= lo[2]) & (
-            z <= hi[2])
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Bounding box (lo, hi), (3,) mm each."""
-        return np.asarray(self.lo, float), np.asarray(self.hi, float)
-
-    def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty."""
-        ok = (x >= self.lo[0]) & (x <= self.hi[0]) & (z >= self.lo[2]) & (z <= self.hi[2])
-        return (np.where(ok, self.lo[1], np.nan), np.where(ok, self.hi[1], np.nan))
-
-
-@dataclass(frozen=True)
-class Superellipsoid:
-    """|u|^e + |v|^e + |w|^e <= 1 with u = (x - cx)/rx, v = (y - cy)/ry and
-    w = (z - cz - shear (y - cy))/rz (mm); e = 2 is an ellipsoid.
-
-    ``shear`` (dimensionless, mm of z per mm of y) tilts the shape's axis in the y-z plane: a
-    breast with ptosis has ``shear > 0``, so its anterior part (y < cy) hangs lower.
-    """
-
-    center: tuple[float, float, float]
-    radii: tuple[float, float, float]
-    exponent: float = 2.0
-    shear: float = 0.0
-
-    def _power(self, t: np.ndarray) -> np.ndarray:
-        if self.exponent == 2.0:
-            return t * t
-        t = np.abs(t)
-        return t ** t.dtype.type(self.exponent) if isinstance(t, np.ndarray) else t**self.exponent
-
-    def contains(self, x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Membership of points given by coordinate arrays (mm)."""
-        c, r = [float(v) for v in self.center], [float(v) for v in self.radii]
-        s = self._power((x - c[0]) * (1.0 / r[0]))
-        s += self._power((y - c[1]) * (1.0 / r[1]))
-        if self.shear:
-            s += self._power((z - c[2] - float(self.shear) * (y - c[1])) * (1.0 / r[2]))
-        else:
-            s += self._power((z - c[2]) * (1.0 / r[2]))
-        return s <= 1.0
-
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Bounding box (lo, hi), (3,) mm each (the shear widens its z extent)."""
-        c, r = np.asarray(self.center, float), np.asarray(self.radii, float)
-        h = r.copy()
-        h[2] += abs(float(self.shear)) * r[1]
-        return c - h, c + h
-
-    @property
-    def z_range(self) -> tuple[float, float]:
-        lo, hi = self.bounds()
-        return (float(lo[2]), float(hi[2]))
-
-    def chord_y(self, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Interval [lo, hi] of y inside the shape on the line (x, ., z); NaN where empty.
-
-        Closed form without shear; with shear, the level function along the line is convex in
-        y, so its minimum is found by golden-section search and the two crossings of 1 by
-        bisection (to ~1e-10 of the semi-axis).
-        """
-        c, r = self.center, self.radii
-        x, z = np.asarray(x, float), np.asarray(z, float)
-        if not self.shear:
-            rest = 1.0 - self._power((x - c[0]) / r[0]) - self._power((z - c[2]) / r[2])
-            h = np.where(rest >= 0, r[1] * np.clip(rest, 0, None) ** (1.0 / self.exponent),
-                         np.nan)
-            return c[1] - h, c[1] + h
-        e, sh = float(self.exponent), float(self.shear)
-        a = np.abs((x - c[0]) / r[0]) ** e
-
-        def f(t):  # level along the line at y = cy + t
-            return a + np.abs(t / r[1]) ** e + np.abs((z - c[2] - sh * t) / r[2]) ** e
-
-        lo, hi = np.full(x.shape, -float(r[1])), np.full(x.shape, float(r[1]))
-        g = (np.sqrt(5.0) - 1.0) / 2.0
-        for _ in range(50):
-            m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
-            left = f(m1) < f(m2)
-            hi, lo = np.where(left, m2, hi), np.where(left, lo, m1)
-        tmin = 0.5 * (lo + hi)
-        hit = f(tmin) <= 1.0
-
-        def crossing(inside, outside):
-            for _ in range(45):
-                mid = 0.5 * (inside + outside)
-                ok = f(mid) <= 1.0
-                inside, outside = np.where(ok, mid, inside), np.where(ok, outside, mid)
-            return 0.5 * (inside + outside)
-
-        t_lo = crossing(tmin.copy(), np.full(x.shape, -float(r[1])))
-        t_hi = crossing(tmin.copy(), np.full(x.shape, float(r[1])))
-        return (np.where(hit, c[1] + t_lo, np.nan), np.where(hit, c[1] + t_hi, np.nan))
-
-    @property
-    def volume(self) -> float:
-        """Closed-form volume, mm^3: 8 rx ry rz Gamma(1+1/e)^3 / Gamma(1+3/e)."""
-        from math import gamma
-
-        e = self.exponent
-        return float(8 * np.prod(self.radii) * gamma(1 + 1 / e) ** 3 / gamma(1 + 3 / e))
 
 
 @dataclass(frozen=True)
@@ -515,57 +371,3 @@ def segmentation_codes(fine: np.ndarray, anterior: np.ndarray) -> np.ndarray:
     seg = lut[fine]
     seg[(~anterior) & ((fine == FAT) | (fine == SKIN) | (fine == GLAND))] = 0
     return seg
-
-
-def reference_volumes(
-    anatomy: Anatomy, *, step: float = 0.2, box_min=None, box_max=None
-) -> dict[str, float]:
-    """Tissue volumes of the anatomy inside a box, independent of any voxel grid (mm^3).
-
-    Along each line parallel to y the membership of every primitive changes only at its chord
-    end points, which are exact (closed form); between consecutive end points the tissue is
-    constant, so each line's tissue lengths are exact. The lines sit on a midpoint grid of
-    spacing ``step`` in (x, z), whose error is second order in ``step`` on smooth parts.
-
-    Parameters
-    ----------
-    anatomy
-        The anatomy (patient frame, no motion).
-    step
-        Line spacing in x and z, mm.
-    box_min, box_max
-        Integration box, mm (default: the anatomy's field of view).
-
-    Returns
-    -------
-    dict
-        Volume per tissue name (``TISSUE_NAMES``), mm^3.
-    """
-    lo_box = np.asarray(anatomy.fov_min if box_min is None else box_min, dtype=float)
-    hi_box = np.asarray(anatomy.fov_max if box_max is None else box_max, dtype=float)
-    nx = max(1, int(round((hi_box[0] - lo_box[0]) / step)))
-    nz = max(1, int(round((hi_box[2] - lo_box[2]) / step)))
-    hx, hz = (hi_box[0] - lo_box[0]) / nx, (hi_box[2] - lo_box[2]) / nz
-    xs = lo_box[0] + hx * (np.arange(nx) + 0.5)
-    zs = lo_box[2] + hz * (np.arange(nz) + 0.5)
-    prims = list(anatomy.primitives().values())
-    totals = np.zeros(len(TISSUE_NAMES))
-    for z in zs:  # one row of lines at a time keeps memory small
-        x = xs
-        zz = np.full_like(x, z)
-        ends = [np.full_like(x, lo_box[1]), np.full_like(x, hi_box[1])]
-        for pr in prims:
-            a, b = pr.chord_y(x, zz)
-            ends += [a, b]
-        e = np.stack(ends, axis=1)
-        e = np.where(np.isnan(e), lo_box[1], e)
-        e = np.sort(np.clip(e, lo_box[1], hi_box[1]), axis=1)
-        mid = 0.5 * (e[:, 1:] + e[:, :-1])
-        length = e[:, 1:] - e[:, :-1]
-        pts = np.stack(
-            [np.repeat(x, mid.shape[1]), mid.ravel(), np.full(mid.size, z)], axis=1
-        )
-        codes = anatomy.classify(pts)
-        totals += np.bincount(codes, weights=length.ravel(), minlength=len(TISSUE_NAMES))
-    totals *= hx * hz
-    return {name: float(v) for name, v in zip(TISSUE_NAMES, totals)}

@@ -1,13 +1,14 @@
 """A family of varied synthetic subjects with the variety of real breast MRI.
 
-A :class:`SubjectSpec` is plain, frozen, JSON-serialisable data holding every choice that makes
-one subject: anatomy (size, cup, left/right difference, ptosis, subcutaneous fat, gland),
-field of view (whole torso, cut by a breast coil's box, or a muscle slab that meets air),
-voxel spacing, contrast (T2/T1, fat suppression), SNR, bias, rigid-motion bounds, positions
-(with the tilt of the tilted one), the truth physics and the truth mesh size.
-:func:`draw_spec` draws a spec from a seed (deterministically; one independent stream per
-seed); :func:`make_subject` writes the subject folder and its truth folder, the truth
-deformation computed by FEBio (an FE code independent of ours) or by our solver.
+A :class:`SubjectSpec` (:mod:`breastmodel.phantom.subject_spec`) is plain, frozen, JSON-
+serialisable data holding every choice that makes one subject: anatomy (size, cup, left/right
+difference, ptosis, subcutaneous fat, gland), field of view (whole torso, cut by a breast
+coil's box, or a muscle slab that meets air), voxel spacing, contrast (T2/T1, fat suppression),
+SNR, bias, rigid-motion bounds, positions (with the tilt of the tilted one), the truth physics
+and the truth mesh size. :func:`draw_spec` draws a spec from a seed (deterministically; one
+independent stream per seed); :func:`make_subject` writes the subject folder and its truth
+folder, the truth deformation computed by FEBio (an FE code independent of ours) or by our
+solver.
 
 Sizes: ``"small"`` subjects are half-size anatomies in a small field of view with 1-2 mm
 voxels and a truth mesh of a few thousand tets (a CI slice of a few subjects makes its truths
@@ -17,18 +18,24 @@ scans (1 mm, 0.5 x 0.5 x 0.6 mm, 0.7 x 0.7 x 1.5 mm).
 
 from __future__ import annotations
 
-import json
 import logging
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from breastmodel.phantom.anatomy import Anatomy, Breast
-from breastmodel.phantom.motion import patient_gravity
 from breastmodel.phantom.rendering import CONTRASTS
+from breastmodel.phantom.subject_spec import (
+    _SCALE,
+    CUPS,
+    FOV_KINDS,
+    PHYSICS,
+    SIZES,
+    VOXEL_SPACINGS,
+    SubjectSpec,
+)
 from breastmodel.phantom.truth_model import NU, TruthModel
 
 __all__ = [
@@ -38,254 +45,8 @@ __all__ = [
 
 log = logging.getLogger("breastmodel.phantom")
 
-SIZES = ("small", "full")
-#: ``torso``: the whole torso width, cut behind the breasts' base; ``coil``: a dedicated breast
-#: coil's box, the body cut by the image boundary at the sides and behind; ``slab``: a muscle
-#: slab fixed at its posterior face and free at its sides, meeting air.
-FOV_KINDS = ("torso", "coil", "slab")
-#: Adult (``"full"``) breast base half-width (x), half-height (z) and projection, mm, per cup.
-CUPS = {"A": (46.0, 42.0, 28.0), "B": (52.0, 48.0, 38.0), "C": (60.0, 55.0, 48.0),
-        "D": (66.0, 60.0, 58.0)}
-#: Voxel spacings (x, y, z) mm drawn per size: 1 mm isotropic, the paper's 0.5 x 0.5 x 0.6 mm
-#: and a clinical 0.7 x 0.7 x 1.5 mm for full subjects; 1-2 mm for small ones (1 mm only
-#: in-plane: rendering a deformed position costs about 0.3 ms per voxel on one core).
-VOXEL_SPACINGS = {
-    "small": ((1.5, 1.5, 1.5), (2.0, 2.0, 2.0), (1.0, 1.0, 2.0)),
-    "full": ((1.0, 1.0, 1.0), (0.5, 0.5, 0.6), (0.7, 0.7, 1.5)),
-}
-#: Truth physics: the bulk control (Neo-Hookean breast and muscle, posterior chest wall fixed,
-#: bonded = conforming mesh, no skin) and variants that each add one hidden effect. Values:
-#: ``(material overrides as multiples of the breast modulus per region code, effects)``.
-PHYSICS: dict[str, tuple[dict[int, dict], dict[str, dict]]] = {
-    "bulk": ({}, {}),
-    # left breast softer, right breast stiffer than the fitted single modulus
-    "asymmetric": ({1: {"E_factor": 0.7}, 3: {"E_factor": 1.4}}, {}),
-    # glandular tissue three times stiffer than fat
-    "gland": ({4: {"E_factor": 3.0}, 5: {"E_factor": 3.0}}, {}),
-    # strain-stiffening (Gent) breast tissue
-    "gent_breast": ({1: {"name": "gent", "Jm": 0.3}, 3: {"name": "gent", "Jm": 0.3}}, {}),
-    # FEBio approximates the skin membrane by a shell (recorded with the truth); FEBio's
-    # initialisation of that shell domain stops with "negative jacobian" on a small slab
-    # subject (the error names the position and FEBio's message)
-    "skin": ({}, {"skin": {"E": 4.0, "thickness": 2.0}}),
-    "fascia": ({}, {"fascia": {"E": 120.0, "thickness": 0.1}}),
-    "ligaments": ({}, {"ligaments": {"E": 100.0}}),
-}
-#: Scale of a size's anatomy relative to the adult one.
-_SCALE = {"small": 0.5, "full": 1.0}
 #: Draw stream tag (keeps family draws independent of other uses of the same seed).
 _STREAM = 0xFA11
-
-
-@dataclass(frozen=True)
-class SubjectSpec:
-    """Every choice that makes one synthetic subject (lengths mm, moduli kPa, angles deg).
-
-    Attributes
-    ----------
-    seed
-        Seed of the noise, bias field and rigid motions (and the draw that made the spec).
-    size
-        ``"small"`` (half-size anatomy) or ``"full"`` (adult).
-    fov
-        Field of view kind, one of :data:`FOV_KINDS`.
-    cup
-        Cup size "A" to "D" (:data:`CUPS`, scaled by the size).
-    asymmetry
-        Left/right difference: the left breast's semi-axes are scaled by ``1 + asymmetry/2``
-        and the right's by ``1 - asymmetry/2`` (dimensionless, |asymmetry| < 0.5).
-    ptosis
-        Drop of each breast's tip below its base centre as a fraction of its projection.
-    exponent
-        Superellipsoid exponent of the breasts (2: ellipsoid; larger: fuller).
-    subcutaneous_fat_mm
-        Thickness of the fat layer between skin and muscle on the torso, mm.
-    gland_scale
-        Gland semi-axes as fractions of the breast's (x and z; y is 0.8 of it); the glandular
-        fraction of the breast grows as its cube.
-    voxel_size
-        Voxel spacing (x, y, z), mm.
-    contrast
-        ``"t2"`` or ``"t1"``.
-    fat_suppressed
-        Fat signal suppressed (SNR then refers to the gland signal).
-    snr
-        Reference-tissue signal / noise sigma.
-    bias
-        Bias-field amplitude (0.3 = +-30 %).
-    max_rotation_deg, max_translation_mm
-        Bounds of the random rigid motion of each position, deg and mm.
-    positions
-        Position names (``"supine_tilted_<deg>"`` carries its tilt).
-    physics
-        Truth physics, keys of :data:`PHYSICS` joined by ``+``.
-    breast_E_kpa, muscle_E_kpa
-        Young's moduli of breast tissue and muscle in the truth, kPa (nu 0.49).
-    truth_mesh_size_mm
-        Target tet edge of the truth mesh, mm (finer than a fit's 8 mm).
-    """
-
-    seed: int
-    size: str = "small"
-    fov: str = "torso"
-    cup: str = "C"
-    asymmetry: float = 0.0
-    ptosis: float = 0.0
-    exponent: float = 2.0
-    subcutaneous_fat_mm: float = 5.0
-    gland_scale: float = 0.5
-    voxel_size: tuple[float, float, float] = (1.5, 1.5, 1.5)
-    contrast: str = "t2"
-    fat_suppressed: bool = False
-    snr: float = 20.0
-    bias: float = 0.3
-    max_rotation_deg: float = 5.0
-    max_translation_mm: float = 10.0
-    positions: tuple[str, ...] = ("prone", "supine", "supine_tilted_45")
-    physics: str = "bulk"
-    breast_E_kpa: float = 2.0
-    muscle_E_kpa: float = 10.0
-    truth_mesh_size_mm: float = 5.0
-
-    def __post_init__(self):
-        vs = tuple(float(v) for v in np.broadcast_to(np.asarray(self.voxel_size, float), (3,)))
-        object.__setattr__(self, "voxel_size", vs)
-        object.__setattr__(self, "positions", tuple(str(p) for p in self.positions))
-        bad = []
-        if int(self.seed) != self.seed or self.seed < 0:
-            bad.append(f"seed must be a non-negative integer, got {self.seed!r}")
-        if self.size not in SIZES:
-            bad.append(f"size must be one of {SIZES}, got {self.size!r}")
-        if self.fov not in FOV_KINDS:
-            bad.append(f"fov must be one of {FOV_KINDS}, got {self.fov!r}")
-        if self.cup not in CUPS:
-            bad.append(f"cup must be one of {sorted(CUPS)}, got {self.cup!r}")
-        if not abs(self.asymmetry) < 0.5:
-            bad.append(f"asymmetry must lie in (-0.5, 0.5), got {self.asymmetry}")
-        if not 0.0 <= self.ptosis <= 0.8:
-            bad.append(f"ptosis must lie in [0, 0.8], got {self.ptosis}")
-        if not 1.5 <= self.exponent <= 4.0:
-            bad.append(f"exponent must lie in [1.5, 4], got {self.exponent}")
-        if not self.subcutaneous_fat_mm > 0:
-            bad.append(f"subcutaneous_fat_mm must be > 0, got {self.subcutaneous_fat_mm}")
-        if not 0.1 <= self.gland_scale <= 0.8:
-            bad.append(f"gland_scale must lie in [0.1, 0.8], got {self.gland_scale}")
-        if not all(v > 0 for v in vs):
-            bad.append(f"voxel_size must be > 0 mm, got {vs}")
-        if self.contrast not in CONTRASTS:
-            bad.append(f"contrast must be one of {sorted(CONTRASTS)}, got {self.contrast!r}")
-        if not self.snr > 0 or not self.bias >= 0:
-            bad.append(f"snr must be > 0 and bias >= 0, got {self.snr}, {self.bias}")
-        if self.max_rotation_deg < 0 or self.max_translation_mm < 0:
-            bad.append("motion bounds must be >= 0")
-        if not self.positions or len(set(self.positions)) != len(self.positions):
-            bad.append(f"positions must be distinct and at least one, got {self.positions}")
-        for part in self.physics.split("+"):
-            if part not in PHYSICS:
-                bad.append(f"unknown physics {part!r}; known {sorted(PHYSICS)}")
-        if not (self.breast_E_kpa > 0 and self.muscle_E_kpa > 0 and self.truth_mesh_size_mm > 0):
-            bad.append("moduli and the truth mesh size must be > 0")
-        if bad:
-            raise ValueError("phantom: bad subject spec: " + "; ".join(bad))
-        for p in self.positions:
-            patient_gravity(p)  # unknown position names fail here
-
-    # --- serialisation ------------------------------------------------------------------------
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict (tuples as lists)."""
-        d = asdict(self)
-        d["voxel_size"] = list(self.voxel_size)
-        d["positions"] = list(self.positions)
-        return d
-
-    def to_json(self) -> str:
-        return json.dumps(self.to_dict(), indent=2, sort_keys=True)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> SubjectSpec:
-        """Inverse of :meth:`to_dict`; unknown keys are an error (names them)."""
-        known = {f.name for f in fields(cls)}
-        extra = set(d) - known
-        if extra:
-            raise ValueError(f"phantom: unknown subject spec key(s) {sorted(extra)}; known "
-                             f"{sorted(known)}")
-        d = dict(d)
-        if "voxel_size" in d:
-            d["voxel_size"] = tuple(np.broadcast_to(np.asarray(d["voxel_size"], float), (3,)))
-        if "positions" in d:
-            d["positions"] = tuple(d["positions"])
-        return cls(**d)
-
-    @classmethod
-    def from_json(cls, text: str) -> SubjectSpec:
-        return cls.from_dict(json.loads(text))
-
-    # --- what the spec makes ------------------------------------------------------------------
-
-    @property
-    def name(self) -> str:
-        """Short identifier, e.g. ``small-0007``."""
-        return f"{self.size}-{self.seed:04d}"
-
-    def anatomy(self) -> Anatomy:
-        """The :class:`Anatomy` of this spec (patient frame, mm)."""
-        s = _SCALE[self.size]
-        rx, rz, proj = (s * v for v in CUPS[self.cup])
-        width, depth = 150.0 * s, 110.0 * s
-        nipple = 3.0 if self.size == "small" else 4.0
-        imf_gap = 8.0 * s + 2.0
-        g = float(self.gland_scale)
-
-        def breast(side: int) -> Breast:
-            f = 1.0 + side * 0.5 * float(self.asymmetry)
-            return Breast(
-                center_x=0.0, center_z=0.0, radius_x=rx * f, radius_z=rz * f,
-                projection=proj * f, exponent=float(self.exponent),
-                gland_scale=(g, 0.8 * g, g), nipple_radius=nipple,
-                ptosis=float(self.ptosis) * proj * f,
-            )
-
-        left, right = breast(+1), breast(-1)
-        rx_max = max(left.radius_x, right.radius_x)
-        cx = max(0.52 * width, rx_max + 6.0 * s)
-        left, right = replace(left, center_x=cx), replace(right, center_x=-cx)
-        rz_max = max(left.radius_z, right.radius_z)
-        drop = max(left.ptosis, right.ptosis)
-        slab = self.fov == "slab"
-        muscle = (15.0 if slab else 12.0) * s
-        marker = 2.0
-        margin = 10.0 * s + 0.5 * float(self.max_translation_mm)
-        z_lo = rz_max + drop + imf_gap + 2 * marker + 2.5
-        z_half = max(z_lo, rz_max) + margin
-        base = dict(
-            torso_half_width=width, torso_half_depth=depth, skin=2.0 if s == 1.0 else 1.5,
-            subcutaneous_fat=float(self.subcutaneous_fat_mm), muscle=muscle,
-            left=left, right=right, marker_radius=marker, marker_gap=0.5,
-            sternum_z=(0.6 * rz_max, -0.4 * rz_max), imf_gap=imf_gap,
-            chest_wall="slab" if slab else "torso",
-            slab_half_width=cx + rx_max + 12.0 * s, slab_half_height=z_lo + 4.0 * s,
-        )
-        an = Anatomy(**base)
-        tips = [an.nipple_tip(b)[1] - b.nipple_radius for b in (left, right)]
-        y_lo = min(tips) - margin
-        if slab:
-            x_half = an.slab_half_width + margin
-            y_hi = margin
-            z_half = an.slab_half_height + margin
-        elif self.fov == "coil":
-            x_half, y_hi = 0.8 * width, -0.45 * depth
-        else:
-            x_half, y_hi = width + margin, -0.1 * depth
-        y_mid = float(np.mean([an.chest_surface_y(cx) - 0.5 * b.projection
-                               for b in (left, right)]))
-        return replace(an, fov_min=(-float(x_half), float(y_lo), -float(z_half)),
-                       fov_max=(float(x_half), float(y_hi), float(z_half)),
-                       rotation_center=(0.0, y_mid, 0.0))
-
-    def truth_model(self) -> TruthModel:
-        """The truth physics (:func:`truth_model`)."""
-        return truth_model(self)
 
 
 def truth_model(spec: SubjectSpec) -> TruthModel:

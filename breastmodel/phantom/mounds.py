@@ -94,11 +94,7 @@ def mound_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
     region = np.where(layer_of_tet < nm, REGIONS["muscle"],
                       np.where(cen[:, 0] > 0, REGIONS["breast_left"], REGIONS["breast_right"]))
     if gland:
-        for side, code in ((1, REGIONS["gland_left"]), (-1, REGIONS["gland_right"])):
-            hc = height(side * c, 0.0)
-            r2 = (((cen[:, 0] - side * c) / (0.5 * sigma)) ** 2 + (cen[:, 2] / (0.5 * sigma)) ** 2
-                  + ((cen[:, 1] + 0.5 * hc) / (0.3 * hc)) ** 2)
-            region = np.where((layer_of_tet >= nm) & (r2 < 1.0), code, region)
+        region = _tag_glands(region, cen, layer_of_tet >= nm, c, sigma, height)
     breast = layer_of_tet >= nm
     bf = boundary_faces(tets, breast)
     layer_of_node = np.broadcast_to(np.arange(nm + nb + 1), P.shape[:3]).ravel()
@@ -116,11 +112,34 @@ def mound_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
         "fascia_superior": if_nodes[zn[if_nodes] > half_height - tol],
         "fascia_inferior": if_nodes[zn[if_nodes] < -half_height + tol],
     }
-    # Ligaments: breast node one layer above the interface, muscle node mid-slab, offset so
-    # that the cable tightens when the breast slides away from its support.
+    pairs = _ligament_pairs(idx, int(np.argmin(np.abs(xs - c))), nx, nz, nm)
+    return Mesh(nodes, tets, region, node_sets=node_sets,
+                face_sets={"skin": skin, "interface": interface},
+                node_pairs={f"ligament_{g}": np.array(p) for g, p in pairs.items()})
+
+
+def _tag_glands(region: np.ndarray, cen: np.ndarray, in_breast: np.ndarray, c: float,
+                sigma: float, height) -> np.ndarray:
+    """``region`` with an ellipsoidal core of each mound (centred at x = +-c, half its height
+    deep) tagged as gland (regions 4 and 5); ``cen`` (K, 3) tet centroids, mm."""
+    for side, code in ((1, REGIONS["gland_left"]), (-1, REGIONS["gland_right"])):
+        hc = height(side * c, 0.0)
+        r2 = (((cen[:, 0] - side * c) / (0.5 * sigma)) ** 2 + (cen[:, 2] / (0.5 * sigma)) ** 2
+              + ((cen[:, 1] + 0.5 * hc) / (0.3 * hc)) ** 2)
+        region = np.where(in_breast & (r2 < 1.0), code, region)
+    return region
+
+
+def _ligament_pairs(idx: np.ndarray, ic: int, nx: int, nz: int,
+                    nm: int) -> dict[str, list[tuple[int, int]]]:
+    """Node pairs (breast node, muscle node) of the inframammary, medial and lateral
+    ligaments of both mounds: the breast node one layer above the interface, the muscle node
+    mid-slab, offset so that the cable tightens when the breast slides away from its support.
+    ``idx`` (nx+1, nz+1, layers) node numbers, ``ic`` the x index of the left mound's centre,
+    ``nm`` the muscle layers."""
     lb, lm = nm + 1, nm // 2
-    ic, kc = np.argmin(np.abs(xs - c)), nz // 2
-    pairs = {"inframammary": [], "medial": [], "lateral": []}
+    kc = nz // 2
+    pairs: dict[str, list[tuple[int, int]]] = {"inframammary": [], "medial": [], "lateral": []}
     for side in (1, -1):
         i0 = ic if side > 0 else nx - ic
         for di in (-1, 0, 1):
@@ -130,9 +149,7 @@ def mound_mesh(*, cells: tuple[int, int, int, int] = (12, 8, 4, 2),
         for dk in (-1, 0, 1):
             pairs["medial"].append((idx[i_med, kc + dk, lb], idx[i_mid, kc + dk, lm]))
             pairs["lateral"].append((idx[i_lat, kc + dk, lb], idx[i_edge, kc + dk, lm]))
-    return Mesh(nodes, tets, region, node_sets=node_sets,
-                face_sets={"skin": skin, "interface": interface},
-                node_pairs={f"ligament_{g}": np.array(p) for g, p in pairs.items()})
+    return pairs
 
 
 

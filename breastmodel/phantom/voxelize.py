@@ -143,6 +143,21 @@ def voxelize(
     -------
     TissueVolume
     """
+    classify = _classifier(anatomy, grid, image_to_patient, displacement)
+    fine, ante = _classify_centres(classify, grid, chunk, progress)
+    seg = segmentation_codes(fine, ante)
+    bidx = _boundary_voxels(fine, ante)
+    counts, seg_counts, ns = _subsample(classify, grid, bidx, int(supersample), chunk, progress)
+    fine_flat, seg_flat = fine.reshape(-1), seg.reshape(-1)
+    fine_flat[bidx] = _vote(counts, fine_flat[bidx])
+    seg_flat[bidx] = _vote(seg_counts, seg_flat[bidx])
+    return TissueVolume(grid, fine, seg, bidx, counts, ns)
+
+
+def _classifier(anatomy: Anatomy, grid: Grid, image_to_patient, displacement):
+    """``classify(i, j, k) -> (fine codes, anterior)`` of (fractional) voxel indices given as
+    broadcastable float32 arrays, flattened: the points are mapped to the patient frame
+    (and pulled back through ``displacement``) in float32."""
     m = np.eye(4) if image_to_patient is None else np.asarray(image_to_patient, dtype=float)
     rot, shift = m[:3, :3], m[:3, :3] @ np.asarray(grid.origin) + m[:3, 3]
     # Patient point of voxel index (i, j, k) (+ sub-voxel offset) = a @ (i, j, k) + shift.
@@ -163,6 +178,12 @@ def voxelize(
             xyz = [np.ascontiguousarray(pts[:, r], dtype=np.float32) for r in range(3)]
         return anatomy.classify_xyz(*xyz), xyz[1] < 0.0  # anterior: in front of the torso axis
 
+    return classify
+
+
+def _classify_centres(classify, grid: Grid, chunk: int, progress):
+    """Fine codes and anterior flags (nz, ny, nx) of every voxel centre, slab by slab (the
+    first half of the progress)."""
     nx, ny, nz = grid.size
     fine = np.empty(grid.shape_zyx, dtype=np.uint8)
     ante = np.empty(grid.shape_zyx, dtype=bool)
@@ -177,15 +198,23 @@ def voxelize(
         ante[k0:k1] = an.reshape(k1 - k0, ny, nx)
         if progress:
             progress(0.5 * k1 / nz)
-    seg = segmentation_codes(fine, ante)
+    return fine, ante
 
-    # Voxels with another label among their 26 neighbours may be crossed by a boundary.
+
+def _boundary_voxels(fine: np.ndarray, ante: np.ndarray) -> np.ndarray:
+    """Flat indices of the voxels with another label among their 26 neighbours (the only
+    ones a boundary may cross)."""
     key = fine + np.uint8(_N_FINE) * ante.astype(np.uint8)
     boundary = (ndimage.maximum_filter(key, size=3) != key) | (
         ndimage.minimum_filter(key, size=3) != key
     )
-    bidx = np.flatnonzero(boundary)
-    s = int(supersample)
+    return np.flatnonzero(boundary)
+
+
+def _subsample(classify, grid: Grid, bidx: np.ndarray, s: int, chunk: int, progress):
+    """Counts of fine codes (m, 7) and of segmentation labels (m, 4) over an s x s x s
+    sub-grid of each boundary voxel, and the samples per voxel (the second half of the
+    progress)."""
     off1 = (np.arange(s) + 0.5) / s - 0.5  # in voxels
     offsets = np.stack(np.meshgrid(off1, off1, off1, indexing="ij"), axis=-1).reshape(-1, 3)
     offsets = offsets.astype(np.float32)
@@ -208,11 +237,7 @@ def voxelize(
         seg_counts[sl] = np.bincount(rows * _N_SEG + sg, minlength=nb * _N_SEG).reshape(nb, -1)
         if progress:
             progress(0.5 + 0.5 * sl.stop / max(1, len(bidx)))
-
-    fine_flat, seg_flat = fine.reshape(-1), seg.reshape(-1)
-    fine_flat[bidx] = _vote(counts, fine_flat[bidx])
-    seg_flat[bidx] = _vote(seg_counts, seg_flat[bidx])
-    return TissueVolume(grid, fine, seg, bidx, counts, ns)
+    return counts, seg_counts, ns
 
 
 def _vote(counts: np.ndarray, centre: np.ndarray) -> np.ndarray:

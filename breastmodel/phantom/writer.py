@@ -14,7 +14,7 @@ import io
 import logging
 import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -152,9 +152,34 @@ def make_phantom(
     Path
         The subject folder. Volumes are int16 NIfTI with fat ~ ``INTENSITY_SCALE``.
     """
-    from tqdm import tqdm
-
     positions = list(positions)
+    _check_arguments(positions, seed, voxel_size, max_rotation_deg, max_translation_mm)
+    anatomy = anatomy if anatomy is not None else (Anatomy.small() if small else Anatomy())
+    gravities = {p: patient_gravity(p) for p in positions}  # fails early on unknown names
+    out, truth = Path(out), truth_folder(out)
+    for folder in (out, truth):
+        folder.mkdir(parents=True, exist_ok=True)
+    grid = Grid.from_box(anatomy.fov_min, anatomy.fov_max, voxel_size)
+    reference = "supine" if "supine" in positions else positions[0]
+    look = {"snr": snr, "bias": bias, "contrast": contrast, "fat_suppressed": fat_suppressed}
+    scans = _scan_positions(out, truth, anatomy, grid, gravities, seed=seed, look=look,
+                            motion_bounds=(max_rotation_deg, max_translation_mm),
+                            deformation=deformation, progress=progress)
+    toml = {"subject": f"phantom-{seed:04d}", "reference": reference,
+            "positions": {name: sc.entry for name, sc in scans.items()}}
+    write_atomic(out / "subject.toml", tomli_w.dumps(toml))
+    for file, points in (("fiducials.csv", "markers"), ("landmarks.csv", "landmarks")):
+        write_atomic(out / file, _csv([(name, k, p) for name, sc in scans.items()
+                                       for k, p in getattr(sc, points).items()]))
+    write_json(truth / "truth.json", _truth_doc(toml["subject"], seed, look, grid, anatomy,
+                                                reference, scans))
+    log.info("phantom: wrote %s and %s", out, truth)
+    return out
+
+
+def _check_arguments(positions: list[str], seed, voxel_size, max_rotation_deg,
+                     max_translation_mm) -> None:
+    """Refuse no or duplicate positions, a bad seed, voxel size or motion bounds."""
     if not positions:
         raise ValueError("phantom: at least one position is needed")
     if len(set(positions)) != len(positions):
@@ -167,102 +192,120 @@ def make_phantom(
                          f"{voxel_size!r}")
     if max_rotation_deg < 0 or max_translation_mm < 0:
         raise ValueError("phantom: motion bounds must be >= 0")
-    anatomy = anatomy if anatomy is not None else (Anatomy.small() if small else Anatomy())
-    gravities = {p: patient_gravity(p) for p in positions}  # fails early on unknown names
-    out = Path(out)
-    truth = truth_folder(out)
-    out.mkdir(parents=True, exist_ok=True)
-    truth.mkdir(parents=True, exist_ok=True)
-    grid = Grid.from_box(anatomy.fov_min, anatomy.fov_max, voxel_size)
-    reference = "supine" if "supine" in positions else positions[0]
 
-    toml: dict = {"subject": f"phantom-{seed:04d}", "reference": reference, "positions": {}}
-    fid_rows, lm_rows = [], []
-    truth_pos: dict = {}
-    bar = tqdm(total=100 * len(positions), desc="phantom", unit="%", disable=not progress)
-    for name in positions:
+
+@dataclass(frozen=True)
+class _Scan:
+    """One written position: its ``subject.toml`` entry, marker and landmark positions in
+    the image frame (mm) and its ``truth.json`` entry."""
+
+    entry: dict
+    markers: dict[str, np.ndarray]
+    landmarks: dict[str, np.ndarray]
+    truth: dict
+
+
+def _scan_positions(out: Path, truth: Path, anatomy: Anatomy, grid: Grid, gravities: dict, *,
+                    seed: int, look: dict, motion_bounds: tuple[float, float], deformation,
+                    progress: bool) -> dict[str, _Scan]:
+    """Move, deform, voxelise, render and write every position (one progress bar)."""
+    from tqdm import tqdm
+
+    scans = {}
+    bar = tqdm(total=100 * len(gravities), desc="phantom", unit="%", disable=not progress)
+    for name, (g_patient, tilt) in gravities.items():
         motion = random_motion(
             _stream(seed, name, 0),
-            max_rotation_deg=max_rotation_deg,
-            max_translation_mm=max_translation_mm,
+            max_rotation_deg=motion_bounds[0],
+            max_translation_mm=motion_bounds[1],
             center=anatomy.rotation_center,
         )
-        done = [0]
-
-        def tick(frac: float, done=done) -> None:
-            bar.update(round(100 * frac) - done[0])
-            done[0] = round(100 * frac)
-
         u = deformation(name) if deformation is not None else displacement(name, anatomy)
         tissue = voxelize(
             anatomy,
             grid,
             image_to_patient=np.linalg.inv(motion.matrix()),
             displacement=None if u is _no_displacement else u,
-            progress=tick,
+            progress=_ticker(bar),
         )
-        rendered = render(tissue, _stream(seed, name, 1), snr=snr, bias=bias,
-                          contrast=contrast, fat_suppressed=fat_suppressed)
-        stored = np.clip(np.rint(rendered.image * INTENSITY_SCALE), 0, 32767).astype(np.int16)
-        write_volume(_image(stored, grid), out / f"{name}.nii.gz")
-        write_volume(_image(tissue.fine, grid), truth / f"{name}_tissue.nii.gz")
-        write_volume(_image(tissue.seg, grid), truth / f"{name}_labels.nii.gz")
-        sitk.WriteTransform(motion.to_sitk(), str(truth / f"{name}_motion.tfm"))
-
-        g_patient, tilt = gravities[name]
+        rendered = render(tissue, _stream(seed, name, 1), **look)
+        _write_volumes(out, truth, name, grid, tissue, rendered, motion)
         g_image = motion.apply_vector(g_patient)
         entry = {"volume": f"{name}.nii.gz", "gravity": [round(float(v), 12) for v in g_image]}
         entry["notes"] = f"synthetic {name} scan, rigidly moved"
         if tilt is not None:
             entry["tilt_deg"] = tilt
-        toml["positions"][name] = entry
-
         markers = {k: motion.apply(_deformed(v, u))[0] for k, v in anatomy.markers().items()}
         landmarks = {k: motion.apply(_deformed(v, u))[0] for k, v in anatomy.landmarks().items()}
-        fid_rows += [(name, k, p) for k, p in markers.items()]
-        lm_rows += [(name, k, p) for k, p in landmarks.items()]
-        volumes = np.bincount(tissue.fine.ravel(), minlength=len(TISSUE_NAMES))
-        truth_pos[name] = {
-            "motion": motion.as_dict(),
-            "gravity_patient": g_patient.tolist(),
-            "gravity_image": g_image.tolist(),
-            "tilt_deg": tilt,
-            "markers_mm": {k: v.tolist() for k, v in markers.items()},
-            "landmarks_mm": {k: v.tolist() for k, v in landmarks.items()},
-            "noise_sigma": rendered.noise_sigma * INTENSITY_SCALE,
-            "mean_fat_signal": rendered.mean_fat * INTENSITY_SCALE,
-            "mean_reference_signal": rendered.mean_reference * INTENSITY_SCALE,
-            "tissue_volumes_mm3": {
-                n: float(c) * grid.voxel_volume for n, c in zip(TISSUE_NAMES, volumes)
-            },
-        }
+        scans[name] = _Scan(entry, markers, landmarks, _position_truth(
+            motion, g_patient, g_image, tilt, markers, landmarks, rendered, tissue, grid))
     bar.close()
+    return scans
 
-    write_atomic(out / "subject.toml", tomli_w.dumps(toml))
-    write_atomic(out / "fiducials.csv", _csv(fid_rows))
-    write_atomic(out / "landmarks.csv", _csv(lm_rows))
-    write_json(
-        truth / "truth.json",
-        {
-            "subject": toml["subject"],
-            "seed": seed,
-            "snr": snr,
-            "bias_amplitude": bias,
-            "voxel_size_mm": grid.spacing,
-            "contrast": contrast,
-            "fat_suppressed": bool(fat_suppressed),
-            "intensity_scale": INTENSITY_SCALE,
-            "intensity": {TISSUE_NAMES[k]: v for k, v in
-                          intensity_table(contrast, fat_suppressed=fat_suppressed).items()},
-            "tissue_codes": {n: i for i, n in enumerate(TISSUE_NAMES)},
-            "label_codes": {"background": 0, "breast": 1, "muscle": 2, "gland": 3},
-            "reference": reference,
-            "anatomy": asdict(anatomy),
-            "markers_patient_mm": {k: v.tolist() for k, v in anatomy.markers().items()},
-            "landmarks_patient_mm": {k: v.tolist() for k, v in anatomy.landmarks().items()},
-            "patient_frame": "LPS mm, origin on the torso axis; image = motion(patient)",
-            "positions": truth_pos,
+
+def _ticker(bar) -> Callable[[float], None]:
+    """Progress callback of one position: moves ``bar`` by its share of 100 per position."""
+    done = [0]
+
+    def tick(frac: float, done=done) -> None:
+        bar.update(round(100 * frac) - done[0])
+        done[0] = round(100 * frac)
+
+    return tick
+
+
+def _write_volumes(out: Path, truth: Path, name: str, grid: Grid, tissue, rendered,
+                   motion) -> None:
+    """The position's image (int16, fat ~ ``INTENSITY_SCALE``), its fine tissue and label
+    maps and its rigid motion."""
+    stored = np.clip(np.rint(rendered.image * INTENSITY_SCALE), 0, 32767).astype(np.int16)
+    write_volume(_image(stored, grid), out / f"{name}.nii.gz")
+    write_volume(_image(tissue.fine, grid), truth / f"{name}_tissue.nii.gz")
+    write_volume(_image(tissue.seg, grid), truth / f"{name}_labels.nii.gz")
+    sitk.WriteTransform(motion.to_sitk(), str(truth / f"{name}_motion.tfm"))
+
+
+def _position_truth(motion, g_patient, g_image, tilt, markers, landmarks, rendered, tissue,
+                    grid: Grid) -> dict:
+    """The ``truth.json`` entry of one position."""
+    volumes = np.bincount(tissue.fine.ravel(), minlength=len(TISSUE_NAMES))
+    return {
+        "motion": motion.as_dict(),
+        "gravity_patient": g_patient.tolist(),
+        "gravity_image": g_image.tolist(),
+        "tilt_deg": tilt,
+        "markers_mm": {k: v.tolist() for k, v in markers.items()},
+        "landmarks_mm": {k: v.tolist() for k, v in landmarks.items()},
+        "noise_sigma": rendered.noise_sigma * INTENSITY_SCALE,
+        "mean_fat_signal": rendered.mean_fat * INTENSITY_SCALE,
+        "mean_reference_signal": rendered.mean_reference * INTENSITY_SCALE,
+        "tissue_volumes_mm3": {
+            n: float(c) * grid.voxel_volume for n, c in zip(TISSUE_NAMES, volumes)
         },
-    )
-    log.info("phantom: wrote %s and %s", out, truth)
-    return out
+    }
+
+
+def _truth_doc(subject: str, seed: int, look: dict, grid: Grid, anatomy: Anatomy,
+               reference: str, scans: dict[str, _Scan]) -> dict:
+    """The subject's ``truth.json``: rendering settings, codes, anatomy and positions."""
+    contrast, fat_suppressed = look["contrast"], look["fat_suppressed"]
+    return {
+        "subject": subject,
+        "seed": seed,
+        "snr": look["snr"],
+        "bias_amplitude": look["bias"],
+        "voxel_size_mm": grid.spacing,
+        "contrast": contrast,
+        "fat_suppressed": bool(fat_suppressed),
+        "intensity_scale": INTENSITY_SCALE,
+        "intensity": {TISSUE_NAMES[k]: v for k, v in
+                      intensity_table(contrast, fat_suppressed=fat_suppressed).items()},
+        "tissue_codes": {n: i for i, n in enumerate(TISSUE_NAMES)},
+        "label_codes": {"background": 0, "breast": 1, "muscle": 2, "gland": 3},
+        "reference": reference,
+        "anatomy": asdict(anatomy),
+        "markers_patient_mm": {k: v.tolist() for k, v in anatomy.markers().items()},
+        "landmarks_patient_mm": {k: v.tolist() for k, v in anatomy.landmarks().items()},
+        "patient_frame": "LPS mm, origin on the torso axis; image = motion(patient)",
+        "positions": {name: sc.truth for name, sc in scans.items()},
+    }
