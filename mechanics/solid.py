@@ -142,9 +142,22 @@ class Solid:
 
         Raises :class:`InvalidConfiguration` if an element is inverted or a law is undefined.
         """
-        dN, V0, lin = self.dN, self.V0, self.linear_mask
         x = np.asarray(x, dtype=np.float64)
-        M = len(V0)
+        F, J, Finv, g, v, dv = self._kinematics(x)
+        fe, P, energy, co, generic = self._deviatoric(F, J, Finv, g, tangent)
+        p_node, p_elem, energy_vol = self._volumetric(v)
+        energy += energy_vol
+        fe += p_elem[:, None, None] * dv
+        force = self.node_sum @ fe.reshape(4 * len(self.V0), 3)
+        Kup = self._element_stiffness(J, g, v, dv, p_elem, co, generic) if tangent else None
+        return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
+
+    def _kinematics(self, x: np.ndarray):
+        """F (M, 3, 3), J (M,), F^-1, the spatial shape-function gradients g (M, 4, 3) 1/mm,
+        the current volumes v (M,) mm^3 and dv/dx (M, 4, 3) mm^2 (geometrically linear
+        elements: their linearised volume). Raises :class:`InvalidConfiguration` where an
+        element is inverted."""
+        dN, V0, lin = self.dN, self.V0, self.linear_mask
         F = np.matmul(x[self.tets].transpose(0, 2, 1), dN)  # F_iJ = x_ai dN_aJ, (M, 3, 3)
         J, Finv = det_inv(F)
         any_lin = bool(lin.any())
@@ -157,6 +170,15 @@ class Solid:
         if any_lin:
             v = np.where(lin, V0 * (np.trace(F, axis1=1, axis2=2) - 2.0), v)
             dv = np.where(lin[:, None, None], V0[:, None, None] * dN, dv)
+        return F, J, Finv, g, v, dv
+
+    def _deviatoric(self, F, J, Finv, g, tangent: bool):
+        """The isochoric part of every law: element forces fe (M, 4, 3) mN, stress P (M, 3,
+        3) kPa, energy mN mm, the closed-form laws' stiffness coefficients (or None) and the
+        other laws' element stiffness [(elements, (k, 12, 12))]. Raises
+        :class:`InvalidConfiguration` where a law is undefined."""
+        dN, V0 = self.dN, self.V0
+        M = len(V0)
         fe = np.zeros((M, 4, 3))
         P = np.zeros((M, 3, 3))
         energy = 0.0
@@ -174,6 +196,12 @@ class Solid:
         if not np.isfinite(fe.sum()):
             raise InvalidConfiguration("a material law is undefined at this strain "
                                        "(e.g. beyond the Gent limit)")
+        return fe, P, energy, co, generic
+
+    def _volumetric(self, v: np.ndarray):
+        """Nodal pressure (N,) kPa ("anp", else empty), element pressure (M,) kPa and the
+        volumetric energy, mN mm, at the current volumes v (M,) mm^3."""
+        V0 = self.V0
         if self.formulation == "anp":
             v_node = self.node_sum @ np.repeat(0.25 * v, 4)
             Jbar = np.ones(self.n_nodes)
@@ -181,60 +209,65 @@ class Solid:
             Jbar[u] = v_node[u] / self.V_node[u]
             p_node = self.bulk_node * (Jbar - 1.0)
             p_elem = p_node[self.tets].mean(axis=1)
-            energy += float(0.5 * np.dot(self.bulk_node * self.V_node, (Jbar - 1.0) ** 2))
+            energy = float(0.5 * np.dot(self.bulk_node * self.V_node, (Jbar - 1.0) ** 2))
         else:
             p_node = np.zeros(0)
             p_elem = self.bulk_elem * (v / V0 - 1.0)
-            energy += float(0.5 * np.dot(self.bulk_elem * V0, (v / V0 - 1.0) ** 2))
-        fe += p_elem[:, None, None] * dv
-        force = self.node_sum @ fe.reshape(4 * M, 3)
-        Kup = None
-        if tangent:
-            # Geometric stiffness of the volume: p d2v/dx2 = p v (g_ai g_bk - g_ak g_bi).
-            pv = p_elem * v * ~lin if any_lin else p_elem * v
-            c_gg, c_sw = pv.copy(), -pv
-            if self.formulation == "standard":
-                c_gg += self.bulk_elem * V0 * J * J * ~lin
-            sel = self.i1_sel
-            if co is not None:
-                c_gg[sel] += co["gg"]
-                c_sw[sel] += co["sw"]
-            KT = np.empty((78, M))  # upper triangles, element index last (fast gathers)
-            gT = np.ascontiguousarray(g.reshape(M, 12).T)
-            fT = qT = None
-            if co is not None:
-                fT = np.zeros((12, M))
-                fT[:, sel] = co["f"].reshape(-1, 12).T
-                c_fg, c_dd = np.zeros(M), np.zeros(M)
-                c_fg[sel], c_dd[sel] = co["fg"], co["dd"]
-                if co["qq"] is not None:
-                    qT, c_qq = np.zeros((12, M)), np.zeros(M)
-                    qT[:, sel] = co["q"].reshape(-1, 12).T
-                    c_qq[sel] = co["qq"]
-            for s in range(0, M, _CHUNK):  # bounded temporaries, cache reuse
-                e = min(M, s + _CHUNK)
-                gc = gT[:, s:e]
-                h = c_gg[s:e] * gc
-                if fT is not None:
-                    fc = fT[:, s:e]
-                    h += c_fg[s:e] * fc
-                K = gc[IU] * h[JU]
-                K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
-                if fT is not None:
-                    K += fc[IU] * (c_fg[s:e] * gc)[JU]
-                    K[DIAG_ROWS] += (c_dd[s:e] * self.dndn[:, s:e])[DIAG_PAIR]
-                if qT is not None:
-                    qc = qT[:, s:e]
-                    K += qc[IU] * (c_qq[s:e] * qc)[JU]
-                KT[:, s:e] = K
-            Kup = KT.T  # (M, 78) view
-            for idx, K12 in generic:
-                Kup[idx] += K12[:, IU, JU]
-            if any_lin and self.formulation == "standard":
-                Kup[lin] += (self.bulk_elem / V0)[lin, None] * upper_outer(dv, dv)[lin]
-            if not np.isfinite(KT.sum()):
-                raise InvalidConfiguration("the tangent is not finite")
-        return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
+            energy = float(0.5 * np.dot(self.bulk_elem * V0, (v / V0 - 1.0) ** 2))
+        return p_node, p_elem, energy
+
+    def _element_stiffness(self, J, g, v, dv, p_elem, co, generic) -> np.ndarray:
+        """(M, 78) upper triangles of the element stiffness, mN/mm: the closed-form laws'
+        kernel and the volume's geometric stiffness in blocks of elements, then the other
+        laws' stiffness and the volumetric term of geometrically linear elements."""
+        V0, lin = self.V0, self.linear_mask
+        M = len(V0)
+        any_lin = bool(lin.any())
+        # Geometric stiffness of the volume: p d2v/dx2 = p v (g_ai g_bk - g_ak g_bi).
+        pv = p_elem * v * ~lin if any_lin else p_elem * v
+        c_gg, c_sw = pv.copy(), -pv
+        if self.formulation == "standard":
+            c_gg += self.bulk_elem * V0 * J * J * ~lin
+        sel = self.i1_sel
+        if co is not None:
+            c_gg[sel] += co["gg"]
+            c_sw[sel] += co["sw"]
+        KT = np.empty((78, M))  # upper triangles, element index last (fast gathers)
+        gT = np.ascontiguousarray(g.reshape(M, 12).T)
+        fT = qT = None
+        if co is not None:
+            fT = np.zeros((12, M))
+            fT[:, sel] = co["f"].reshape(-1, 12).T
+            c_fg, c_dd = np.zeros(M), np.zeros(M)
+            c_fg[sel], c_dd[sel] = co["fg"], co["dd"]
+            if co["qq"] is not None:
+                qT, c_qq = np.zeros((12, M)), np.zeros(M)
+                qT[:, sel] = co["q"].reshape(-1, 12).T
+                c_qq[sel] = co["qq"]
+        for s in range(0, M, _CHUNK):  # bounded temporaries, cache reuse
+            e = min(M, s + _CHUNK)
+            gc = gT[:, s:e]
+            h = c_gg[s:e] * gc
+            if fT is not None:
+                fc = fT[:, s:e]
+                h += c_fg[s:e] * fc
+            K = gc[IU] * h[JU]
+            K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
+            if fT is not None:
+                K += fc[IU] * (c_fg[s:e] * gc)[JU]
+                K[DIAG_ROWS] += (c_dd[s:e] * self.dndn[:, s:e])[DIAG_PAIR]
+            if qT is not None:
+                qc = qT[:, s:e]
+                K += qc[IU] * (c_qq[s:e] * qc)[JU]
+            KT[:, s:e] = K
+        Kup = KT.T  # (M, 78) view
+        for idx, K12 in generic:
+            Kup[idx] += K12[:, IU, JU]
+        if any_lin and self.formulation == "standard":
+            Kup[lin] += (self.bulk_elem / V0)[lin, None] * upper_outer(dv, dv)[lin]
+        if not np.isfinite(KT.sum()):
+            raise InvalidConfiguration("the tangent is not finite")
+        return Kup
 
     def _i1_laws(self, F, J, Finv, g, fe, P, tangent: bool) -> float:
         """Closed-form force of the psi(I1bar) laws; stores in ``self._i1_coef`` the

@@ -87,8 +87,7 @@ def inverse_fixed_point(
     x_target = np.asarray(x_target, np.float64)
     X = x_target.copy() if X0 is None else np.array(X0, np.float64)
     u = None if u0 is None else np.asarray(u0, np.float64)
-    V: list[np.ndarray] = []
-    F: list[np.ndarray] = []
+    mixing = _Anderson(anderson)
     history: list[dict] = []
     state = None
     X_good = None  # the last estimate whose forward solve converged
@@ -109,41 +108,71 @@ def inverse_fixed_point(
             # The update went too far: step back half-way to the last good estimate.
             log.warning("inverse: forward solve failed (%s); damping the update", exc)
             X = 0.5 * (X + X_good)
-            V.clear()
-            F.clear()
+            mixing.reset()
             continue
         X_good = X.copy()
         failures = 0
         u = state.u
         f = (x_target - state.x).reshape(-1)
-        err = np.linalg.norm(f.reshape(-1, 3), axis=1)
-        row = {"iteration": it, "mean_error": float(err.mean()), "max_error": float(err.max()),
-               "newton": state.newton_iterations, "time": time.perf_counter() - t0}
+        row = _row(it, f, state, t0)
         history.append(row)
         if callback:
             callback(row)
         if row["max_error"] < tol:
             return StressFreeResult(X, state, tuple(history), True, "inverse_fixed_point")
-        v = X.reshape(-1)
+        X = _next_estimate(model, X, f, mixing)
+    return StressFreeResult(X, state, tuple(history), False, "inverse_fixed_point")
+
+
+class _Anderson:
+    """Anderson mixing (Walker & Ni 2011) of the fixed point X <- X + f(X): the last
+    ``memory + 1`` estimates and their mismatches, and the mixed next estimate."""
+
+    def __init__(self, memory: int):
+        self.memory = memory
+        self.V: list[np.ndarray] = []
+        self.F: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        """Forget the history (after a damped or inverted step)."""
+        self.V.clear()
+        self.F.clear()
+
+    def step(self, v: np.ndarray, f: np.ndarray) -> np.ndarray:
+        """The next estimate (3N,) from the estimate v and its mismatch f (3N,) mm: v + f,
+        mixed with the history when the memory is not 0."""
+        V, F = self.V, self.F
         V.append(v.copy())
         F.append(f.copy())
-        if len(V) > anderson + 1:
+        if len(V) > self.memory + 1:
             V.pop(0)
             F.pop(0)
         new = v + f
-        if anderson and len(V) > 1:
+        if self.memory and len(V) > 1:
             dF = np.stack([F[i + 1] - F[i] for i in range(len(F) - 1)], axis=1)
             dG = np.stack([(V[i + 1] + F[i + 1]) - (V[i] + F[i]) for i in range(len(V) - 1)],
                           axis=1)
             gamma, *_ = np.linalg.lstsq(dF, f, rcond=None)
             new = new - dG @ gamma
-        X_new = new.reshape(-1, 3)
-        if _inverted(model, X_new):
-            X_new = (v + f).reshape(-1, 3)
-            V.clear()
-            F.clear()
-        X = X_new
-    return StressFreeResult(X, state, tuple(history), False, "inverse_fixed_point")
+        return new
+
+
+def _next_estimate(model: Model, X: np.ndarray, f: np.ndarray, mixing: _Anderson) -> np.ndarray:
+    """The next reference positions (N, 3) mm: the mixed fixed-point step, or the plain one
+    (and a fresh history) where the mixed one inverts an element."""
+    v = X.reshape(-1)
+    X_new = mixing.step(v, f).reshape(-1, 3)
+    if _inverted(model, X_new):
+        X_new = (v + f).reshape(-1, 3)
+        mixing.reset()
+    return X_new
+
+
+def _row(it: int, f: np.ndarray, state: State, t0: float) -> dict:
+    """One iteration's history row: the mean and largest nodal mismatch |f| (mm)."""
+    err = np.linalg.norm(f.reshape(-1, 3), axis=1)
+    return {"iteration": it, "mean_error": float(err.mean()), "max_error": float(err.max()),
+            "newton": state.newton_iterations, "time": time.perf_counter() - t0}
 
 
 def paper_fixed_point(

@@ -62,8 +62,6 @@ the pressure builds and the equilibrium is unchanged.
 
 from __future__ import annotations
 
-import logging
-
 import numpy as np
 
 from mechanics.effects._contact import (
@@ -76,103 +74,25 @@ from mechanics.effects._contact import (
     signed_gap,
     summed_blocks,
 )
-from mechanics.effects.base import Contribution, Effect, Option, Param, Variant, register_effect
+from mechanics.effects._contact_points import RULES, _InterfaceContact
+from mechanics.effects._friction import (
+    _FrictionAnchors,
+    friction_bound,
+    friction_law,
+    slip_limit,
+)
+from mechanics.effects.base import Contribution, Option, Param, Variant, register_effect
 
-log = logging.getLogger("mechanics.effects.sliding")
+__all__ = ["HOLD_COS", "METHODS", "RULES", "Sliding", "friction_bound", "friction_law",
+           "slip_limit"]
 
 METHODS = ("penalty", "augmented")
 #: Triangles whose normals differ by more than this angle (cos) make a crease (0.5 degree).
 HOLD_COS = float(np.cos(np.radians(0.5)))
 
-#: Quadrature rules on the slave triangles: barycentric points and weights (sum 1).
-_A1, _B1 = 0.0597158717897698, 0.4701420641051151
-_A2, _B2 = 0.7974269853530873, 0.1012865073234563
-RULES = {
-    1: (np.full((1, 3), 1 / 3), np.ones(1)),
-    3: (np.array([[2 / 3, 1 / 6, 1 / 6], [1 / 6, 2 / 3, 1 / 6], [1 / 6, 1 / 6, 2 / 3]]),
-        np.full(3, 1 / 3)),
-    7: (np.array([[1 / 3, 1 / 3, 1 / 3], [_A1, _B1, _B1], [_B1, _A1, _B1], [_B1, _B1, _A1],
-                  [_A2, _B2, _B2], [_B2, _A2, _B2], [_B2, _B2, _A2]]),
-        np.array([0.225] + [0.1323941527885062] * 3 + [0.1259391805448271] * 3)),
-}
-
-
-def friction_law(r: np.ndarray, b: np.ndarray, sigma: float):
-    """Magnitude of the friction force from the trial force r and the bound b (mN).
-
-    sigma = 0: Coulomb return mapping, phi = min(r, b). sigma > 0: the corner is rounded by
-    a parabola between r = (1 - sigma) b and (1 + sigma) b,
-    phi = b - (r - (1 + sigma) b)^2 / (4 sigma b), continuous with its slope; below, phi = r
-    exactly (stick: a linear spring), above, phi = b exactly (Coulomb slip). Exact on both
-    branches is what makes the anchor update of :meth:`Sliding.begin_step` leave the force
-    of a converged state unchanged (a law below r everywhere relaxed every friction force
-    at every load step).
-
-    Returns phi, d phi / dr, phi / r (its limit at r = 0) and d phi / db.
-    """
-    if sigma == 0.0:
-        stick = r <= b
-        phi = np.minimum(r, b)
-        return (phi, stick.astype(float),
-                np.where(stick, 1.0, b / np.where(r > 0, r, 1.0)), (~stick).astype(float))
-    hi = (1.0 + sigma) * b
-    stick = r <= (1.0 - sigma) * b
-    slip = r >= hi
-    den = np.where(b > 0, 4.0 * sigma * b, 1.0)
-    d = r - hi  # < 0 in the blend
-    phi = np.where(stick, r, np.where(slip, b, b - d * d / den))
-    phi_r = np.where(stick, 1.0, np.where(slip, 0.0, -2.0 * d / den))
-    phi_b = np.where(stick, 0.0, np.where(slip, 1.0,
-                                          1.0 + 2.0 * (1.0 + sigma) * d / den
-                                          + d * d / (den * np.where(b > 0, b, 1.0))))
-    # r = b = 0 (the first iterate of a solve): no friction in the tangent, so the normal
-    # pressure builds up first (measured: a stick tangent there makes supine solves stagnate)
-    phi_over_r = np.where(r > 0, phi / np.where(r > 0, r, 1.0), np.where(b > 0, 1.0, 0.0))
-    phi_r = np.where(b > 0, phi_r, 0.0)
-    return phi, phi_r, phi_over_r, phi_b
-
-
-def slip_limit(b: np.ndarray, sigma: float) -> np.ndarray:
-    """(P,) trial force (mN) above which :func:`friction_law` is in full slip, (1 + sigma) b."""
-    return (1.0 + sigma) * b
-
-
-def friction_bound(fN: np.ndarray, w: np.ndarray, k: float, p_eps: float):
-    """Friction bound b (P,) mN from the normal force fN (P,) mN (< 0 in compression) and
-    its derivative d b / d fN.
-
-    p_eps = 0: Coulomb, b = k max(-fN, 0), kinked at fN = 0. p_eps > 0 (kPa): a smooth
-    ramp, b = k (-fN + sqrt(fN^2 + (w p_eps)^2)) / 2, which differs from the Coulomb bound
-    by at most k w p_eps / 2 (at fN = 0) and by k w p_eps^2 / (4 p) at a pressure p, so it
-    changes nothing where the pressure is well above p_eps but gives Newton a continuous
-    tangent where the no-separation interface passes from compression to tension.
-    """
-    if p_eps == 0.0:
-        comp = fN < 0.0
-        return k * np.where(comp, -fN, 0.0), np.where(comp, -k, 0.0)
-    h = np.sqrt(fN**2 + (w * p_eps) ** 2)
-    return 0.5 * k * (h - fN), 0.5 * k * (fN / h - 1.0)
-
-
-class _InterfaceContact(Effect):
-    """Shared set-up of the split-interface effects: slave faces, master faces."""
-
-    requires = ("face_sets:interface", "face_sets:interface_muscle")
-
-    def _setup(self):
-        mesh = self.mesh
-        self.slave_faces = np.asarray(mesh.face_sets["interface"], np.int64)
-        self.master = np.asarray(mesh.face_sets["interface_muscle"], np.int64)
-        self.slaves = np.unique(self.slave_faces)
-        if np.intersect1d(self.slaves, np.unique(self.master)).size:
-            raise ValueError(
-                f"effect {self.name!r}: the 'interface' and 'interface_muscle' face sets share "
-                "nodes; split the interface first (mechanics.effects._interface."
-                "split_interface)")
-
 
 @register_effect
-class Sliding(_InterfaceContact):
+class Sliding(_FrictionAnchors, _InterfaceContact):
     """No-separation breast-muscle contact with Coulomb friction (see the module docstring).
 
     Options: ``method`` "penalty" (default) or "augmented" (the normal multipliers are
@@ -262,21 +182,8 @@ class Sliding(_InterfaceContact):
             raise ValueError(f"effect 'sliding': points must be 0, 1, 3 or 7, got {self.points}")
         self._setup()
         self._boundary_edges = boundary_edges(self.master)
-        if self.points == 0:
-            self.sconn = self.slaves[:, None]
-            self.sN = np.ones((len(self.slaves), 1))
-        else:
-            eta, _ = RULES[self.points]
-            self.sconn = np.repeat(self.slave_faces, len(eta), axis=0)
-            self.sN = np.tile(eta, (len(self.slave_faces), 1))
-        P, m = self.sN.shape
-        # C maps the local dofs (m slave nodes, 3 master nodes) to (x_p, x1, x2, x3).
-        C = np.zeros((P, 12, 3 * m + 9))
-        for b in range(m):
-            C[:, 0:3, 3 * b:3 * b + 3] = self.sN[:, b, None, None] * np.eye(3)
-        C[:, 3:, 3 * m:] = np.eye(9)
-        self._C = C
-        self._w = None
+        self._setup_points()
+        P = len(self.sN)
         self.symmetric = self.values["friction"] == 0.0
         self.multiplier = np.zeros(P)  # mN, augmented Lagrangian normal force
         self.anchor_facet: np.ndarray | None = None
@@ -284,32 +191,6 @@ class Sliding(_InterfaceContact):
         self.anchor_normal = np.zeros((P, 3))
         self._begun = None  # (x, state before the update) of the last begin_step
         self._history = self._held = None  # pairings of the last two evaluations; held
-
-    def weights(self, X: np.ndarray) -> np.ndarray:
-        """(P,) reference area of each contact point, mm^2."""
-        if self._w is None or self._w[0] is not X:
-            if self.points == 0:
-                w = nodal_areas(X, self.slave_faces, self.slaves)
-            else:
-                Xt = X[self.slave_faces]
-                A = 0.5 * np.linalg.norm(np.cross(Xt[:, 1] - Xt[:, 0], Xt[:, 2] - Xt[:, 0]),
-                                         axis=1)
-                w = np.outer(A, RULES[self.points][1]).ravel()
-            self._w = (X, w)
-        return self._w[1]
-
-    def contact_points(self, x: np.ndarray) -> np.ndarray:
-        """(P, 3) current positions of the contact points on the breast side, mm."""
-        return np.einsum("pm,pmi->pi", self.sN, x[self.sconn])
-
-    def point_normals(self, x: np.ndarray) -> np.ndarray | None:
-        """(P, 3) unit normals of the breast-side triangles the contact points lie on (the
-        pairing ignores muscle triangles facing away from them); None for node points."""
-        if self.points == 0:
-            return None
-        xt = x[self.sconn]
-        n = np.cross(xt[:, 1] - xt[:, 0], xt[:, 2] - xt[:, 0])
-        return n / np.maximum(np.linalg.norm(n, axis=1), 1e-300)[:, None]
 
     # -- normal part -------------------------------------------------------------------
     def _normal(self, X, x, *, hessian=True):
@@ -366,42 +247,6 @@ class Sliding(_InterfaceContact):
                         minlength=len(x))
         return f[self.slaves] / nodal_areas(X, self.slave_faces, self.slaves)
 
-    # -- friction anchors --------------------------------------------------------------
-    def _trial(self, X, x):
-        """Elastic slip s (P, 3) mm from the anchors, trial force (P, 3) mN, anchor nodes."""
-        nodes = self.master[self.anchor_facet]
-        xa = np.einsum("sa,sai->si", self.anchor_bary, x[nodes])
-        n0 = self.anchor_normal
-        r = self.contact_points(x) - xa
-        s = r - np.einsum("si,si->s", r, n0)[:, None] * n0
-        return s, self.values["tangential_penalty"] * self.weights(X)[:, None] * s, nodes
-
-    def tangential_state(self, X: np.ndarray, x: np.ndarray):
-        """Friction state of the contact points at x against the current anchors.
-
-        Returns ``slip`` (P, 3) mm (elastic slip since the last anchor update), ``force``
-        (P, 3) mN (tangential force carried) and ``stick`` (P,) bool.
-        """
-        if self.anchor_facet is None:
-            self._set_anchors(x, self.contact_points(x))
-        s, t, _ = self._trial(X, x)
-        _, _, _, _, fN, w, on = self._normal(X, x, hessian=False)
-        bound = self._bound(fN, w, on)[0]
-        r = np.linalg.norm(t, axis=1)
-        _, _, phi_over_r, _ = friction_law(r, bound, self.values["smoothing"])
-        return s, t * phi_over_r[:, None], r <= bound
-
-    def _bound(self, fN, w, on):
-        """Friction bound and its derivative by fN, zero at released points (``on`` 0)."""
-        b, db = friction_bound(fN, w, self.values["friction"], self.values["pressure_smoothing"])
-        return b * on, db * on
-
-    def _set_anchors(self, x, points):
-        facet, bary, _ = closest_facets(points, x, self.master, k=self.k_search,
-                                        normals=self.point_normals(x))
-        self.anchor_facet, self.anchor_bary = facet, bary
-        self.anchor_normal = facet_normals(x, self.master)[facet]
-
     def to_febio(self, feb):
         """FEBio ``sliding-elastic`` contact between the breast side (primary, faces flipped so
         that the normal points out of the breast) and the muscle side: penalty per area
@@ -451,72 +296,13 @@ class Sliding(_InterfaceContact):
             self.multiplier = self._normal(X, x, hessian=False)[4].copy()
         if self.values["friction"] == 0.0:
             return
-        xp = self.contact_points(x)
-        if self.anchor_facet is None:
-            self._set_anchors(x, xp)
-            return
-        _, _, _, _, fN, w, on = self._normal(X, x, hessian=False)
-        released = int(np.sum(on == 0.0))
-        if released:
-            log.info("sliding: %d of %d contact points are past the edge of the muscle surface "
-                     "and carry no contact force", released, len(on))
-        s, t, _ = self._trial(X, x)
-        bound = self._bound(fN, w, on)[0]
-        r = np.linalg.norm(t, axis=1)
-        hi = slip_limit(bound, self.values["smoothing"])
-        slip = r > hi
-        if np.any(slip):
-            # Move the anchor of a slipping point so that its elastic slip is the full-slip
-            # limit, |t_new| = (1 + sigma) b (the rest of the slip is permanent): its force
-            # stays Coulomb's b, so the converged state stays in equilibrium.
-            keep = np.where(slip, hi / np.where(slip, r, 1.0), 1.0)
-            old = self.anchor_facet.copy(), self.anchor_bary.copy()
-            self._set_anchors(x, xp - keep[:, None] * s)
-            self.anchor_facet = np.where(slip, self.anchor_facet, old[0])
-            self.anchor_bary = np.where(slip[:, None], self.anchor_bary, old[1])
-        # Freeze the normal of every anchor facet at the converged configuration.
-        self.anchor_normal = facet_normals(x, self.master)[self.anchor_facet]
+        self._update_anchors(X, x)
 
     def reset(self) -> None:
         """Forget friction anchors and multipliers (start of a new solve from scratch)."""
         self.anchor_facet = None
         self.multiplier = np.zeros(len(self.sN))
         self._begun = None
-
-    def regularization(self, X: np.ndarray, x: np.ndarray):
-        """COO triplets (dof numbering, mN/mm) of the stick stiffness eps_T w B^T P0 B of the
-        contact points whose friction bound is zero (no compressive pressure).
-
-        Not part of the tangent: the solver adds it, scaled down with the residual, only when
-        the tangent is singular (:class:`mechanics.solver.SolverOptions` ``singular_shift``).
-        At zero contact pressure (the first iterate of a solve) friction gives no tangential
-        stiffness and the sliding modes are free; this stiffness makes the first Newton
-        correction a sticking one while the pressure builds. It never enters the residual,
-        so the equilibrium is unchanged.
-        """
-        none = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
-        if self.values["friction"] == 0.0:
-            return none
-        if self.anchor_facet is None:
-            self._set_anchors(x, self.contact_points(x))
-        _, _, _, _, fN, w, on = self._normal(X, x, hessian=False)
-        free = (self._bound(fN, w, on)[0] <= 0.0) & (on > 0.0)
-        if not free.any():
-            return none
-        mnodes = self.master[self.anchor_facet[free]]
-        xi = self.anchor_bary[free]
-        C = self._C[free]
-        B = np.zeros((int(free.sum()), 3, 12))
-        B[:, :, 0:3] = np.eye(3)
-        for a in range(3):
-            B[:, :, 3 + 3 * a:6 + 3 * a] = -xi[:, a, None, None] * np.eye(3)
-        B = B @ C
-        n0 = self.anchor_normal[free]
-        P0 = np.eye(3) - np.einsum("si,sj->sij", n0, n0)
-        epsT = self.values["tangential_penalty"] * w[free]
-        K = epsT[:, None, None] * (B.transpose(0, 2, 1) @ P0 @ B)
-        dof = node_dofs(np.concatenate([self.sconn[free], mnodes], axis=1))
-        return summed_blocks(dof, dof, K, 3 * len(x))
 
     # -- residual and tangent ----------------------------------------------------------
     def contribute(self, X, x, load):
@@ -530,41 +316,12 @@ class Sliding(_InterfaceContact):
         dofN = node_dofs(nodes)
         fq = fN[:, None] * dgf  # (P, L) force on the local dofs
         rows, cols, Ks = [dofN], [dofN], [K]
-        k_fric = self.values["friction"]
-        if k_fric > 0.0:
-            if self.anchor_facet is None:  # contribute() before any begin_step
-                self._set_anchors(x, self.contact_points(x))
-            s, t, mnodes = self._trial(X, x)
-            xi = self.anchor_bary
-            P = len(s)
-            B = np.zeros((P, 3, 12))
-            B[:, :, 0:3] = np.eye(3)
-            for a in range(3):
-                B[:, :, 3 + 3 * a:6 + 3 * a] = -xi[:, a, None, None] * np.eye(3)
-            B = B @ C  # d(x_p - x_anchor)/d(local dofs)
-            n0 = self.anchor_normal
-            P0 = np.eye(3) - np.einsum("si,sj->sij", n0, n0)
-            epsT = self.values["tangential_penalty"] * w
-            dtt = epsT[:, None, None] * (P0 @ B)  # d t_trial / dq
-            bound, bound_f = self._bound(fN, w, on)
-            r = np.linalg.norm(t, axis=1)
-            sh = t / np.where(r > 0, r, 1.0)[:, None]
-            phi, phi_r, phi_over_r, phi_b = friction_law(r, bound, self.values["smoothing"])
-            dofT = node_dofs(np.concatenate([self.sconn, mnodes], axis=1))
-            force_t = phi[:, None] * sh
-            ss = np.einsum("si,sj->sij", sh, sh)
-            Dt = phi_r[:, None, None] * ss + phi_over_r[:, None, None] * (np.eye(3) - ss)
-            rows.append(dofT)
-            cols.append(dofT)
-            Ks.append(B.transpose(0, 2, 1) @ (Dt @ dtt))
-            comp = (bound_f != 0.0) & (phi_b != 0.0)
-            if np.any(comp):
-                db = (bound_f * eps * w)[:, None] * dgf  # d bound / dq on the normal dofs
-                dt_n = phi_b[:, None, None] * np.einsum("si,sj->sij", sh, db)
-                rows.append(dofT[comp])
-                cols.append(dofN[comp])
-                Ks.append(B[comp].transpose(0, 2, 1) @ dt_n[comp])
-            fT = np.einsum("sij,si->sj", B, force_t)  # (P, L) on the anchor's local dofs
+        if self.values["friction"] > 0.0:
+            dofT, fT, blocks = self._friction_terms(X, x, dgf, dofN, fN, w, on)
+            for r, c, k in blocks:
+                rows.append(r)
+                cols.append(c)
+                Ks.append(k)
             force = np.bincount(np.concatenate([dofN.ravel(), dofT.ravel()]),
                                 weights=np.concatenate([fq.ravel(), fT.ravel()]),
                                 minlength=3 * n)

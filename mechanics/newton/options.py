@@ -1,0 +1,117 @@
+"""Options and errors of :func:`mechanics.solver.solve`: what a solve may do (tolerances,
+load stepping, linear solves, the acceptance by FEBio's norms) and how it says it failed
+(a stalled Newton, or a model with no equilibrium)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mechanics.state import State
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Options of :func:`solve`.
+
+    tol : relative residual norm at convergence
+    max_newton : Newton iterations per load step before the step is cut back
+    initial_steps : the first load increment is 1 / initial_steps
+    min_step : smallest load increment before giving up
+    max_cutbacks : total cut-backs allowed in one solve
+    grow_below : grow the increment (x2) after a step that took at most this many iterations
+    linear_solver : "auto" (PARDISO if installed, else scipy), "scipy" or "pardiso"
+    line_search : Crisfield-type line search on R . du
+    reuse_factor : solve with GMRES preconditioned by the last factorisation (that of an
+        earlier iteration or load step; an inexact Newton step whose linear tolerance
+        follows the nonlinear residual, so convergence stays quadratic), and refactorise
+        only if GMRES does not converge; the GMRES iteration budget is what a new
+        factorisation would cost in triangular solves, so reuse never costs much more than
+        it saves (``bench/vs_febio.py``: at 150k tets one factorisation per solve)
+    reuse_below : reuse only once the relative residual is below this; None (default):
+        always for a symmetric tangent, below 0.05 for an unsymmetric one (frictional
+        sliding, whose tangent changes with the stick/slip state: reused at every residual,
+        the 20k-tet phantom's supine solve took 17-27 iterations with 4-7 factorisations,
+        once cut back, against 18 iterations and 12 factorisations below 0.05)
+    reuse_max_iterations : most GMRES iterations of one reusing solve (each stores a vector
+        of the system's size), below the budget above
+    stagnate_after, stagnate_above : cut a step back early once it has taken
+        ``stagnate_after`` iterations and the relative residual is still above
+        ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
+        and fell less than 10x over the last 3 iterations, and shows no other progress
+        (see ``_progressing``; measured: friction solves leaving their first iterations'
+        stick/slip transients were cut back while falling 50x in 3 iterations);
+        ``stagnate_after = 0`` turns the check off and leaves only ``max_newton`` (linearly
+        converging solves, e.g. friction)
+    singular_shift : what to do when the tangent A is singular (its factorisation fails or
+        its solve does not satisfy the system): solve the Newton correction with A + rho S,
+        rho = min(1, relative residual), S the regularising stiffness that effects offer
+        (``regularization(X, x)``: the sliding effect's stick stiffness at contact points
+        without pressure, whose friction gives no tangential stiffness at the first iterate
+        of a solve), else (or if that is singular too) with A + singular_shift * rho
+        |diag(A)| on the displacement block (Levenberg-Marquardt). Only the Newton matrix
+        changes, never the residual, so the converged state is the unregularised
+        equilibrium. 0 turns both off (a singular tangent then cuts the step back).
+    dtol, etol : FEBio's displacement and energy norms (its defaults): at every iteration
+        the step's log records ``||eta du|| / ||u - u_step_start||`` (``displacement_norms``)
+        and ``|eta du . R_new| / |du_0 . R_0|`` (``energy_norms``), FEBio's
+        ``FESolidSolver2`` measures. The residual test (``tol``) decides convergence; a
+        step that stagnates (see ``stagnate_after``) even with exact linear solves, or that
+        runs out of iterations, is accepted when both norms are below these and the
+        relative residual is below ``accept_residual``: what FEBio would call converged
+        (it checks no residual by default), with the residual bounded on top. Each
+        accepted step says so in its log (``converged_by``) and the solve's
+        ``stats["convergence"]`` states the criteria and the last step's norms.
+    accept_residual : the largest relative residual of a step accepted by the norms above
+        (0: never accept a step by the norms)
+    progress : log every Newton iteration at INFO level
+    threads : MKL threads of the PARDISO phases; None: the environment variable
+        ``BREASTMODEL_THREADS``, else the cores this process may run on (never the load;
+        see :func:`mechanics.linear_solvers.resolve_threads`). The Newton loop's own BLAS
+        calls (vector operations) run on one thread.
+    """
+
+    tol: float = 1e-8
+    max_newton: int = 20
+    initial_steps: int = 1
+    min_step: float = 1e-4
+    max_cutbacks: int = 20
+    grow_below: int = 6
+    linear_solver: str = "auto"
+    line_search: bool = True
+    reuse_factor: bool = True
+    reuse_below: float | None = None
+    reuse_max_iterations: int = 100
+    stagnate_after: int = 8
+    stagnate_above: float = 1e-3
+    singular_shift: float = 1e-2
+    dtol: float = 1e-3
+    etol: float = 1e-2
+    accept_residual: float = 1e-3
+    progress: bool = False
+    threads: int | None = None
+
+
+class SolverError(RuntimeError):
+    """Divergence after the last cut-back, or an unconstrained model.
+
+    ``state`` is the last converged :class:`State` (``converged=False``, its ``load`` < 1).
+    ``verdict`` is None for a numerical failure, else a dict that says why the model has no
+    equilibrium (see :class:`NoEquilibrium`).
+    """
+
+    verdict: dict | None = None
+
+    def __init__(self, message: str, state: State | None = None):
+        super().__init__(message)
+        self.state = state
+
+
+class NoEquilibrium(SolverError):
+    """A physical verdict, not a stalled Newton: the model as built has no equilibrium (a
+    rigid-body mode nothing holds, or a load the supports and structures cannot carry).
+    ``verdict``: ``kind`` ("no equilibrium"), ``reason`` and the force budget or the free
+    modes behind it."""
+
+    def __init__(self, message: str, state: State | None = None, *, verdict: dict):
+        super().__init__(message, state)
+        self.verdict = verdict
