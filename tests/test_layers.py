@@ -79,3 +79,28 @@ def test_the_contract_catches_a_violation(tmp_path):
     assert not _allowed("mechanics", "breastmodel.cli")
     assert not _allowed("meshing", "mechanics.solver")
     assert _allowed("meshing", "mechanics.mesh")
+
+
+#: what an install of the imaging and meshing stages adds to numpy and scipy
+IMAGING_STACK = ("SimpleITK", "skimage", "cv2", "pymeshlab", "pytetwild", "open3d", "meshio",
+                 "pyvista", "dask", "distributed", "tomli_w", "matplotlib")
+
+
+def test_mechanics_tests_load_with_numpy_and_scipy_alone():
+    """Every module of tests/mechanics (and the helpers they import) loads with the imaging
+    stack made unimportable: the solver's tests need numpy and scipy only."""
+    import subprocess
+
+    script = (
+        "import importlib, pathlib, sys\n"
+        f"for m in {IMAGING_STACK!r}:\n"
+        "    sys.modules[m] = None\n"
+        f"sys.path[:0] = [{str(ROOT)!r}, {str(ROOT / 'tests')!r}, "
+        f"{str(ROOT / 'tests' / 'mechanics')!r}]\n"
+        f"for p in sorted(pathlib.Path({str(ROOT / 'tests' / 'mechanics')!r})"
+        ".glob('test_*.py')):\n"
+        "    importlib.import_module(p.stem)\n"
+        "print('ok')\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300, cwd=ROOT)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]

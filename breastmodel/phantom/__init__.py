@@ -6,12 +6,22 @@ A family of varied subjects whose truth deformation FEBio computes:
 ``make_subject(draw_spec(seed), out)`` (:mod:`breastmodel.phantom.family`).
 """
 
-from breastmodel.phantom.anatomy import Anatomy, Breast, reference_volumes
-from breastmodel.phantom.family import SubjectSpec, draw_spec, make_subject
-from breastmodel.phantom.motion import RigidMotion, patient_gravity
-from breastmodel.phantom.writer import displacement, make_phantom, truth_folder
+import importlib
 
-__all__ = [
-    "Anatomy", "Breast", "RigidMotion", "SubjectSpec", "displacement", "draw_spec",
-    "make_phantom", "make_subject", "patient_gravity", "reference_volumes", "truth_folder",
-]
+#: public name -> the module that defines it; imported on first use, so that a light module
+#: of the package (``mounds``: the two-mound mesh, numpy only) loads without the imaging
+#: stack that the writer needs (the mechanics tests use it with numpy and scipy alone)
+_WHERE = {
+    "Anatomy": "anatomy", "Breast": "anatomy", "reference_volumes": "anatomy",
+    "SubjectSpec": "family", "draw_spec": "family", "make_subject": "family",
+    "RigidMotion": "motion", "patient_gravity": "motion",
+    "displacement": "writer", "make_phantom": "writer", "truth_folder": "writer",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name: str):
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
