@@ -25,6 +25,13 @@ neighbours; the thorax interior is the dark region it keeps away from the air). 
 is given (``contrast=``) or detected from the profile under the body surface
 (:func:`detect_contrast`); when the detected one fails, the other is tried, and if both fail
 the error names the file and both reasons.
+
+This module holds :func:`segment_volume` (preprocessing, the choice of contrast, the label
+map) and re-exports the names of its parts: :mod:`imaging.segment_contrast` (background
+noise, contrast detection, body checks), :mod:`imaging.segment_regions` (seeds, the error,
+shared region steps), :mod:`imaging.levelset` (active contours),
+:mod:`imaging.segment_fat_bright` and :mod:`imaging.segment_fat_suppressed` (the regions of
+each contrast) and :mod:`imaging.segment_confidence`.
 """
 
 from __future__ import annotations

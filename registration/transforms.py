@@ -23,6 +23,7 @@ TEXT_SUFFIXES = (".tfm", ".txt")
 
 
 def _umask() -> int:
+    """The process's file-creation mask (read by setting it and putting it back)."""
     mask = os.umask(0)
     os.umask(mask)
     return mask
@@ -49,7 +50,7 @@ def write_transform(tfm: sitk.Transform, path: str | Path) -> None:
     ``.txt`` file holds :func:`transform_text`; other suffixes are written by SimpleITK in
     the format the suffix names."""
     path = Path(path)
-    if path.suffix.lower() in TEXT_SUFFIXES:
+    if path.suffix in TEXT_SUFFIXES:
         text = transform_text(tfm).encode()
 
         def write(tmp: str) -> None:

@@ -50,6 +50,7 @@ from breastmodel.pipeline.register import (  # noqa: F401  (importable from here
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """The ``register`` subcommand's arguments."""
     p = sub.add_parser(
         "register",
         help="rigidly register every position onto the reference position",
