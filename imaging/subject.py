@@ -136,23 +136,7 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
         On the first problem found, naming the file and what is wrong.
     """
     root = Path(folder)
-    try:
-        check_path(root)
-    except VolumeError:
-        raise SubjectError(f"subject folder {os.fspath(root)!a}: the path is not valid UTF-8; "
-                           "rename it") from None
-    if not root.is_dir():
-        raise SubjectError(f"subject folder {root} does not exist")
-    toml_path = root / "subject.toml"
-    if not toml_path.is_file():
-        raise SubjectError(f"subject {root}: subject.toml is missing")
-    try:
-        with toml_path.open("rb") as f:
-            meta = tomllib.load(f)
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise SubjectError(f"{toml_path}: not valid TOML ({exc})") from None
-    except OSError as exc:
-        raise SubjectError(f"{toml_path}: cannot be read ({exc.strerror})") from None
+    toml_path, meta = _read_toml(root)
     _check_keys(meta, _TOP_KEYS, f"{toml_path}")
     sid = meta.get("subject")
     if not isinstance(sid, str) or not sid.strip():
@@ -164,20 +148,7 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
     positions = {}
     for name, entry in table.items():
         positions[name] = _read_position(root, toml_path, name, entry)
-
-    reference = meta.get("reference", "supine" if "supine" in positions else None)
-    if reference is not None and not isinstance(reference, str):
-        raise SubjectError(f"{toml_path}: 'reference' must be a position name (a string), "
-                           f"got {reference!r}")
-    if reference is None:
-        raise SubjectError(
-            f"{toml_path}: no 'reference' given and no 'supine' position to default to"
-        )
-    if reference not in positions:
-        raise SubjectError(
-            f"{toml_path}: reference position {reference!r} is not among the positions "
-            f"{sorted(positions)}"
-        )
+    reference = _reference(meta, positions, toml_path)
 
     if check_volumes:
         for pos in positions.values():
@@ -198,6 +169,46 @@ def read_subject(folder: str | Path, *, check_volumes: bool = True) -> Subject:
         fiducials=fiducials,
         landmarks=landmarks,
     )
+
+
+def _read_toml(root: Path) -> tuple[Path, dict]:
+    """(path, contents) of the folder's ``subject.toml``, after checking that the folder's
+    path is valid UTF-8 and that both exist."""
+    try:
+        check_path(root)
+    except VolumeError:
+        raise SubjectError(f"subject folder {os.fspath(root)!a}: the path is not valid UTF-8; "
+                           "rename it") from None
+    if not root.is_dir():
+        raise SubjectError(f"subject folder {root} does not exist")
+    toml_path = root / "subject.toml"
+    if not toml_path.is_file():
+        raise SubjectError(f"subject {root}: subject.toml is missing")
+    try:
+        with toml_path.open("rb") as f:
+            return toml_path, tomllib.load(f)
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SubjectError(f"{toml_path}: not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise SubjectError(f"{toml_path}: cannot be read ({exc.strerror})") from None
+
+
+def _reference(meta: dict, positions: dict, toml_path: Path) -> str:
+    """The reference position: ``reference``, else ``supine`` when there is one."""
+    reference = meta.get("reference", "supine" if "supine" in positions else None)
+    if reference is not None and not isinstance(reference, str):
+        raise SubjectError(f"{toml_path}: 'reference' must be a position name (a string), "
+                           f"got {reference!r}")
+    if reference is None:
+        raise SubjectError(
+            f"{toml_path}: no 'reference' given and no 'supine' position to default to"
+        )
+    if reference not in positions:
+        raise SubjectError(
+            f"{toml_path}: reference position {reference!r} is not among the positions "
+            f"{sorted(positions)}"
+        )
+    return reference
 
 
 def _check_keys(table: dict, allowed: set[str], where: str) -> None:

@@ -240,15 +240,9 @@ def _improve_once(nodes, tets, region, vu, fu, vb, fb, epsilon):
 
 
 def mesh_labels(
-    labels: sitk.Image,
-    *,
-    size_mm: float = 8.0,
-    seed: int | None = None,
-    progress: bool = False,
-    keep_gland: bool = False,
-    surface_edge_mm: float | None = None,
-    threads: int = 0,
-    coarse: float = COARSE,
+    labels: sitk.Image, *, size_mm: float = 8.0, seed: int | None = None,
+    progress: bool = False, keep_gland: bool = False, surface_edge_mm: float | None = None,
+    threads: int = 0, coarse: float = COARSE,
 ) -> Mesh:
     """Tetrahedral mesh of breast and muscle tissue from a label map.
 
@@ -298,34 +292,13 @@ def mesh_labels(
         Surfaces that cannot be repaired, or a tet mesh that misses a tissue.
     """
     del seed
-    if not size_mm > 0:
-        raise ValueError(f"meshing: size_mm must be positive, got {size_mm}")
-    if not coarse >= 1:
-        raise ValueError(f"meshing: coarse must be at least 1, got {coarse}")
+    _check_sizes(size_mm, coarse)
     say = log.info if progress else log.debug
     t0 = time.perf_counter()
     masks = tissue_masks(labels)
-    grid = masks.grid
-    edge = surface_edge_mm or 0.75 * size_mm
-    edge = max(edge, 0.75 * float(grid.spacing.min()))
-    vu, fu = tissue_surface(masks.union, grid, target_edge_mm=edge, what="breast and muscle")
-    vb, fb = tissue_surface(masks.breast, grid, target_edge_mm=edge, what="breast")
-    say("meshing: surfaces %d + %d triangles (%.1f s)", len(fu), len(fb), time.perf_counter() - t0)
-
-    voxel = float(grid.spacing.max())
-    gap = max(1.5 * voxel, 0.2 * size_mm)
-    fi = _interface_patch(vb, fb, vu, fu, masks, gap_mm=gap)
-    soup_v = [vu, vb]
-    soup_f = [fu, fi + len(vu)]
-    if keep_gland and masks.gland.any():
-        vg, fg = tissue_surface(masks.gland, grid, target_edge_mm=edge, what="gland")
-        soup_v.append(vg)
-        soup_f.append(fg + len(vu) + len(vb))
-    v_all, f_all = np.vstack(soup_v), np.vstack(soup_f)
-    used = np.unique(f_all)
-    remap = np.full(len(v_all), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    v_all, f_all = v_all[used], remap[f_all]
+    (vu, fu), (vb, fb), gland, (v_all, f_all) = _tissue_surfaces(
+        masks, edge_mm=surface_edge_mm or 0.75 * size_mm, size_mm=size_mm,
+        keep_gland=keep_gland, say=lambda *a: say(*a, time.perf_counter() - t0))
 
     epsilon = 0.1 * size_mm  # tet faces stay within this of the surfaces
     # fTetWild's main passes run at edge_mm over the whole bounding box and the sizing field
@@ -335,7 +308,69 @@ def mesh_labels(
         sizing=sizing_field(vu, fu, masks, size_mm, coarse=coarse),
     )
     say("meshing: fTetWild %d tets (%.1f s)", len(tets), time.perf_counter() - t0)
+    tets, region, x_mid = _tissue_regions(nodes, tets, vu, fu, vb, fb, gland, masks)
+    nodes, tets = _drop_unused(nodes, tets)
+    nodes, tets, region = _improve(nodes, tets, region, vu, fu, vb, fb, epsilon=epsilon)
+    nodes, tets, region = _keep_main_body(nodes, tets, region)
+    region = _absorb_fragments(tets, region)
+    sets = named_sets(nodes, tets, region, grid=masks.grid, masks=masks, x_mid=x_mid,
+                      size_mm=size_mm)
+    mesh = Mesh(nodes=nodes, tets=tets, region=region, **sets)
+    say("meshing: %d nodes, %d tets (%.1f s)", mesh.n_nodes, mesh.n_tets, time.perf_counter() - t0)
+    return mesh
 
+
+def _check_sizes(size_mm: float, coarse: float) -> None:
+    """Refuse a non-positive element size or a grading below 1."""
+    if not size_mm > 0:
+        raise ValueError(f"meshing: size_mm must be positive, got {size_mm}")
+    if not coarse >= 1:
+        raise ValueError(f"meshing: coarse must be at least 1, got {coarse}")
+
+
+def _keep_main_body(nodes, tets, region):
+    """Drop the tets outside the largest face-connected component (:func:`_main_body`)."""
+    body = _main_body(tets)
+    if not body.all():
+        log.info("meshing: dropped %d tets that hang on the mesh by an edge or a vertex",
+                 int((~body).sum()))
+        tets, region = tets[body], region[body]
+        nodes, tets = _drop_unused(nodes, tets)
+    return nodes, tets, region
+
+
+def _tissue_surfaces(masks: TissueMasks, *, edge_mm, size_mm, keep_gland, say):
+    """The tissue surfaces and fTetWild's input: the union's surface, the breast surface's
+    patch on the muscle (away from the skin), and the gland's surface when it is kept, with
+    unused vertices dropped. Surfaces have edges of ``edge_mm``, at least 0.75 voxel.
+    Returns ((vu, fu) union, (vb, fb) breast, gland surface or None, (vertices, faces) of
+    the input); ``say`` logs the surfaces' sizes."""
+    grid = masks.grid
+    edge_mm = max(edge_mm, 0.75 * float(grid.spacing.min()))
+    vu, fu = tissue_surface(masks.union, grid, target_edge_mm=edge_mm, what="breast and muscle")
+    vb, fb = tissue_surface(masks.breast, grid, target_edge_mm=edge_mm, what="breast")
+    say("meshing: surfaces %d + %d triangles (%.1f s)", len(fu), len(fb))
+    voxel = float(masks.grid.spacing.max())
+    gap = max(1.5 * voxel, 0.2 * size_mm)
+    fi = _interface_patch(vb, fb, vu, fu, masks, gap_mm=gap)
+    soup_v = [vu, vb]
+    soup_f = [fu, fi + len(vu)]
+    gland = None
+    if keep_gland and masks.gland.any():
+        gland = tissue_surface(masks.gland, masks.grid, target_edge_mm=edge_mm, what="gland")
+        soup_v.append(gland[0])
+        soup_f.append(gland[1] + len(vu) + len(vb))
+    v_all, f_all = np.vstack(soup_v), np.vstack(soup_f)
+    used = np.unique(f_all)
+    remap = np.full(len(v_all), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return (vu, fu), (vb, fb), gland, (v_all[used], remap[f_all])
+
+
+def _tissue_regions(nodes, tets, vu, fu, vb, fb, gland, masks: TissueMasks):
+    """Keep the tets inside the union (less the boundary slivers) and tag each with its
+    region: breast (left of the midline at larger x, or right) or muscle, and gland inside
+    the gland's surface when given. Returns (tets, region, midline x mm)."""
     centroids = nodes[tets].mean(1)
     in_union = _occupancy.inside(vu, fu, centroids)
     tets, centroids = tets[in_union], centroids[in_union]
@@ -349,25 +384,13 @@ def mesh_labels(
     if not (tissue == 1).any() or not (tissue == 2).any():
         raise RuntimeError("meshing: the tet mesh lost a tissue (breast or muscle); try a smaller "
                            "--size")
-    x_mid = midline_x(masks.breast, grid)
+    x_mid = midline_x(masks.breast, masks.grid)
     region = np.full(len(tets), REGIONS["muscle"], np.int32)
     left = centroids[:, 0] > x_mid
     region[(tissue == 1) & left] = REGIONS["breast_left"]
     region[(tissue == 1) & ~left] = REGIONS["breast_right"]
-    if keep_gland and masks.gland.any():
-        in_gland = _occupancy.inside(vg, fg, centroids) & (tissue == 1)
+    if gland is not None:
+        in_gland = _occupancy.inside(gland[0], gland[1], centroids) & (tissue == 1)
         region[in_gland & left] = REGIONS["gland_left"]
         region[in_gland & ~left] = REGIONS["gland_right"]
-    nodes, tets = _drop_unused(nodes, tets)
-    nodes, tets, region = _improve(nodes, tets, region, vu, fu, vb, fb, epsilon=epsilon)
-    body = _main_body(tets)
-    if not body.all():
-        log.info("meshing: dropped %d tets that hang on the mesh by an edge or a vertex",
-                 int((~body).sum()))
-        tets, region = tets[body], region[body]
-        nodes, tets = _drop_unused(nodes, tets)
-    region = _absorb_fragments(tets, region)
-    sets = named_sets(nodes, tets, region, grid=grid, masks=masks, x_mid=x_mid, size_mm=size_mm)
-    mesh = Mesh(nodes=nodes, tets=tets, region=region, **sets)
-    say("meshing: %d nodes, %d tets (%.1f s)", mesh.n_nodes, mesh.n_tets, time.perf_counter() - t0)
-    return mesh
+    return tets, region, x_mid

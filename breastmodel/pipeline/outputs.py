@@ -269,7 +269,7 @@ def export_images(out: Path, register_dir: Path, reference: str,
 
     from breastmodel.config import write_atomic
     from imaging.markups import write_markups
-    from registration.transforms import read_transform, transform_points
+    from registration.transforms import read_transform, transform_points, transform_text
 
     reg = json.loads((register_dir / "registration.json").read_text())
     files: dict[str, Any] = {"volumes": {}, "labels": {}, "transforms": {}, "fiducials": {}}
@@ -285,9 +285,7 @@ def export_images(out: Path, register_dir: Path, reference: str,
         files.setdefault("segmentations", {})[pos] = seg.name
         tfm = out / f"{pos}.tfm"
         if ref:
-            tmp = tfm.with_name(f".{tfm.name}.tmp.tfm")
-            sitk.WriteTransform(sitk.Euler3DTransform(), str(tmp))
-            os.replace(tmp, tfm)
+            write_atomic(tfm, transform_text(sitk.Euler3DTransform()))
             pts = reg.get("fiducials_reference_mm", {})
         else:
             _copy(register_dir / f"{pos}.tfm", tfm)

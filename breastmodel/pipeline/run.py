@@ -84,7 +84,7 @@ def _register(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
     def fn(d: Path) -> None:
         import tomli_w
 
-        from breastmodel.commands.register import register_subject
+        from breastmodel.pipeline.register import register_subject
 
         labels = d / "labels_in"
         labels.mkdir()

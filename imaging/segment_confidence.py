@@ -1,0 +1,72 @@
+"""What a segmentation says of itself: the agreement of each region's two methods, a
+plausible breast volume (:func:`segmentation_confidence`), and the breast volume by side."""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+
+from imaging.labels import BREAST, GLAND
+
+#: Plausible breast-tissue volume of one scan, ml (both sides; a small phantom has ~20 ml).
+BREAST_ML_RANGE = (5.0, 6000.0)
+
+
+def _dice(x: np.ndarray, y: np.ndarray) -> float:
+    n = int(np.count_nonzero(x)) + int(np.count_nonzero(y))
+    return 1.0 if n == 0 else 2.0 * int(np.count_nonzero(x & y)) / n
+
+
+def segmentation_confidence(
+    *,
+    cnr: float,
+    body: tuple[np.ndarray, np.ndarray],
+    muscle: tuple[np.ndarray, np.ndarray],
+    breast_ml: float,
+    min_agreement: float = 0.9,
+) -> dict:
+    """How far to trust a segmentation, from what it knows itself.
+
+    Parameters
+    ----------
+    cnr : float
+        Contrast-to-noise ratio of tissue against background (:func:`contrast_to_noise`).
+    body, muscle : (start, final) pairs of bool arrays
+        Each region's threshold initialisation and its active-contour result: two
+        segmentations of one region from two methods; their Dice is the agreement.
+    breast_ml : float
+        Breast tissue volume (labels 1 and 3), ml.
+    min_agreement : float
+        Dice below which a region's agreement is a warning.
+
+    Returns
+    -------
+    dict
+        ``cnr``, ``agreement`` (Dice per region), ``breast_ml``, ``breast_ml_plausible``
+        (within ``BREAST_ML_RANGE``), ``warnings`` and ``confident`` (no warning).
+    """
+    agree = {"body": _dice(*body), "muscle": _dice(*muscle)}
+    lo, hi = BREAST_ML_RANGE
+    plausible = lo <= breast_ml <= hi
+    warnings = [f"low confidence: the {k}'s active contour and its threshold start agree "
+                f"only to Dice {v:.3f} (< {min_agreement})"
+                for k, v in agree.items() if v < min_agreement]
+    if not plausible:
+        warnings.append(f"low confidence: {breast_ml:.1f} ml of breast tissue is outside the "
+                        f"plausible {lo:g}-{hi:g} ml")
+    return {"cnr": float(cnr), "agreement": agree, "breast_ml": float(breast_ml),
+            "breast_ml_plausible": bool(plausible), "warnings": warnings,
+            "confident": not warnings}
+
+
+def breast_volumes_by_side(labels: sitk.Image, midline_x_mm: float) -> dict[str, float]:
+    """Breast tissue (labels 1 and 3) volume left and right of the sagittal midline, ml."""
+    a = sitk.GetArrayViewFromImage(labels)
+    idx = np.argwhere((a == BREAST) | (a == GLAND))
+    if len(idx) == 0:
+        return {"breast_left": 0.0, "breast_right": 0.0}
+    d = np.asarray(labels.GetDirection()).reshape(3, 3)
+    x = labels.GetOrigin()[0] + (idx[:, ::-1] * np.asarray(labels.GetSpacing())) @ d[0]
+    vox = float(np.prod(labels.GetSpacing())) / 1000.0
+    return {"breast_left": float(np.count_nonzero(x > midline_x_mm) * vox),
+            "breast_right": float(np.count_nonzero(x <= midline_x_mm) * vox)}

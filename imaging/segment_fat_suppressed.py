@@ -1,0 +1,226 @@
+"""Regions of a fat-suppressed volume (fat dark; muscle, gland and skin mid-grey to bright):
+air, thorax interior, body and muscle, found from the geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage
+
+from imaging.levelset import levelset_refine
+from imaging.segment_contrast import (
+    _require_body,
+    _require_cnr,
+    air_noise,
+    contrast_to_noise,
+)
+from imaging.segment_regions import (
+    STAGE,
+    SegmentationError,
+    _apply_seeds,
+    _ball,
+    _components,
+    _interior_median,
+    _markers,
+    _muscle_start,
+)
+
+
+def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, notes: list, *,
+                            seeds, levelset_iterations, curvature, marker_diameter_mm,
+                            min_region_mm3, muscle_min_mm, name, levelset_shrink=1) -> dict:
+    """Air, thorax interior, body and muscle of a fat-suppressed volume.
+
+    Fat is dark (but above the background noise); muscle, gland and skin are mid-grey to
+    bright; the thorax interior is dark or between. What holds on every such scan is the
+    geometry: the muscle is a thick layer brighter than both its neighbours (fat outside,
+    thorax interior inside), and the dark regions it encloses do not come near the air,
+    whereas fat lies under the skin. So:
+
+    1. air: the dark regions reaching the field of view's edge, below the midpoint of the
+       background and the darkest tissue (the 10th percentile of what rises five noise
+       sigmas above the background), refined by a threshold level set; then the body's
+       outer voxels darker than half their brightest body neighbour (partial volume of the
+       skin, or of a muscle meeting air) go to the air;
+    2. the body's interior is split at each of the two thresholds of a three-class Otsu of
+       its histogram; dark regions that stay more than 4 mm (plus three voxels) from the
+       air are the thorax interior; the first threshold that leaves one is the muscle's
+       lower edge (on T2-like scans muscle is the middle class, on T1-like ones the thorax
+       interior is);
+    3. the muscle starts from the thick (``muscle_min_mm``) bright parts touching the
+       thorax interior (else the largest thick bright part: a muscle meeting air) and its
+       threshold level set settles at the midpoint of the muscle and its dark neighbours,
+       kept within ``muscle_min_mm`` of its start (gland and skin are as bright).
+    """
+    air, peak, low, t_air = _edge_air(a, sp, min_region_mm3=min_region_mm3, name=name)
+    lv = {"air": _interior_median(a, air, peak)}
+    body = ~air
+    _require_body(air, name)
+    thorax, t_mid, thresholds = _deep_dark_thorax(a, sp, body, min_region_mm3=min_region_mm3,
+                                                  name=name)
+    muscle, thorax = _muscle_start_bright(pre, a, sp, body, thorax, t_mid, notes, seeds=seeds,
+                                          muscle_min_mm=muscle_min_mm, name=name)
+    t_low = _muscle_levels(a, body, thorax, muscle, lv, low=low, t_mid=t_mid)
+    lv.update(t_air=t_air, t_dark=t_low, t_mid=t_mid, otsu_low=thresholds[0],
+              otsu_high=thresholds[1])
+    body_start = body.copy()
+    ls = dict(iterations=levelset_iterations, curvature=curvature, shrink=levelset_shrink)
+    air, body, markers_mm, marker_mask = _refine_air(
+        pre, a, sp, air, lv["air"], t_air=t_air, marker_diameter_mm=marker_diameter_mm, ls=ls,
+        name=name)
+    thorax = ndimage.binary_fill_holes(thorax) & body
+    muscle_start = muscle.copy()
+    reach = ndimage.binary_dilation(muscle, structure=_ball(muscle_min_mm, sp))
+    muscle = levelset_refine(pre, muscle, lower=t_low, upper=np.inf, **ls)
+    muscle &= body & reach & ~marker_mask
+    if not muscle.any():
+        raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
+                                "active contour (fat-suppressed contrast)")
+    thorax &= ~muscle
+    cnr = contrast_to_noise(a, air, {"air": lv["air"], "fat": max(lv["muscle"], 1.0)})
+    _require_cnr(cnr, name)
+    return {"lv": lv, "air": air, "thorax": thorax, "body": body, "body_start": body_start,
+            "muscle": muscle, "muscle_start": muscle_start, "marker_mask": marker_mask,
+            "markers_mm": markers_mm, "cnr": cnr, "t_bright": t_mid}
+
+
+def _edge_air(a, sp, *, min_region_mm3, name):
+    """Step 1's start: the dark regions reaching the field of view's edge, below the midpoint
+    of the background and the darkest tissue (the 10th percentile of what rises five noise
+    sigmas above the background). Returns (air, background level, darkest tissue level,
+    that midpoint)."""
+    vox_mm3 = float(np.prod(sp))
+    peak, sigma = air_noise(a)
+    rough = a > peak + 5.0 * sigma
+    vals = a[::2, ::2, ::2][rough[::2, ::2, ::2]]
+    if vals.size < 100:
+        raise SegmentationError(f"{STAGE}: {name}: no body found above the background noise "
+                                "(fat-suppressed contrast)")
+    low = float(np.percentile(vals, 10))
+    # Below the darkest tissue (fat, under the skin): the air cannot leak into the body.
+    t_air = 0.5 * (peak + low)
+    dark = a < t_air
+    lab, n = _components(dark)
+    edge = np.zeros(n + 1, bool)
+    for face in (lab[0], lab[-1], lab[:, 0], lab[:, -1], lab[:, :, 0], lab[:, :, -1]):
+        edge[np.unique(face)] = True
+    edge[0] = False
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)
+    keep = edge & (sizes * vox_mm3 >= min_region_mm3)
+    air = keep[lab]
+    if not air.any():
+        raise SegmentationError(
+            f"{STAGE}: {name}: no background (air) reaches the edge of the field of view "
+            "(fat-suppressed contrast; is this a body MRI with air around it?)")
+    return air, peak, low, t_air
+
+
+def _deep_dark_thorax(a, sp, body, *, min_region_mm3, name):
+    """Step 2: the thorax interior, dark regions of the body's interior that stay more than
+    4 mm (plus three voxels) from the air, below the first of the two three-class Otsu
+    thresholds that leaves one. Returns (thorax, that threshold, both thresholds)."""
+    from skimage.filters import threshold_multiotsu
+
+    vox_mm3 = float(np.prod(sp))
+    # distance of every voxel to the air, on every second voxel (mm)
+    sub_body = body[::2, ::2, ::2]
+    depth = ndimage.distance_transform_edt(sub_body, sampling=2.0 * sp)
+    inner = sub_body & (depth > 2.0 * float(sp.max()) + 1.0)
+    ivals = a[::2, ::2, ::2][inner]
+    if ivals.size < 100:
+        raise SegmentationError(f"{STAGE}: {name}: the body is too thin to segment "
+                                "(fat-suppressed contrast)")
+    thresholds = [float(t) for t in threshold_multiotsu(ivals, classes=3)]
+    # skin and partial volume, plus the erosion and the distance grid's steps
+    near_mm = 4.0 + 3.0 * float(sp.max())
+    thorax = np.zeros(a.shape, bool)
+    t_mid = thresholds[0]
+    for t in thresholds:
+        # one erosion cuts the one-voxel bridges that noise and partial volume open through
+        # the muscle; the dark regions grow back by one voxel once classified
+        dlab, dn = _components(ndimage.binary_erosion(body & (a < t)))
+        if dn == 0:
+            continue
+        dsizes = np.bincount(dlab.ravel(), minlength=dn + 1)
+        sub_lab = dlab[::2, ::2, ::2]
+        idx = np.arange(1, dn + 1)
+        closest = np.asarray(ndimage.minimum(depth, sub_lab, idx), float)
+        deep = np.zeros(dn + 1, bool)
+        deep[1:] = (closest > near_mm) & (dsizes[1:] * vox_mm3 >= min_region_mm3)
+        if deep.any():
+            thorax = ndimage.binary_dilation(deep[dlab]) & body & (a < t)
+            t_mid = t
+            break
+    return thorax, t_mid, thresholds
+
+
+def _muscle_start_bright(pre, a, sp, body, thorax, t_mid, notes, *, seeds, muscle_min_mm,
+                         name):
+    """Step 3's start: the thick bright parts touching the thorax interior (else the largest
+    thick bright part), after the user's seeds. Returns (muscle, thorax)."""
+    bright = body & ~thorax & (a >= t_mid)
+    muscle, largest = _muscle_start(bright, thorax, sp, muscle_min_mm)
+    if largest:
+        notes.append("no thorax interior found; muscle = largest thick bright region "
+                     "(fat-suppressed contrast)")
+    mlab = _components(bright)[0]
+    muscle, thorax = _apply_seeds(seeds, pre, mlab, thorax, muscle, notes, name,
+                                  lambda m: body & ~thorax & ~m & (a < t_mid))
+    if not muscle.any():
+        raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall found "
+                                "(fat-suppressed contrast: no thick layer brighter than fat)")
+    return muscle, thorax
+
+
+def _muscle_levels(a, body, thorax, muscle, lv, *, low, t_mid) -> float:
+    """Levels of muscle, fat and thorax interior (into ``lv``) and the muscle's lower edge:
+    the midpoint of the muscle and its dark neighbours."""
+    lv["muscle"] = _interior_median(a, muscle, 1.0)
+    fat = body & ~thorax & (a < t_mid) & ~ndimage.binary_dilation(muscle, iterations=2)
+    lv["fat"] = _interior_median(a, fat, low) if fat.any() else low
+    lv["thorax"] = _interior_median(a, thorax, lv["fat"]) if thorax.any() else lv["fat"]
+    # the muscle's lower edge: midpoint of the muscle and its dark neighbours
+    return 0.5 * lv["muscle"] + 0.25 * (lv["fat"] + lv["thorax"])
+
+
+def _refine_air(pre, a, sp, air, air_level, *, t_air, marker_diameter_mm, ls, name):
+    """Step 1's end: the air's threshold level set, the body's outer partial-volume voxels
+    to the air, the body the largest region left, skin markers out of it. Returns (air,
+    body, marker centres (K, 3) mm, marker mask)."""
+    air = levelset_refine(pre, air, lower=-np.inf, upper=t_air, **ls)
+    air |= _surface_partial_volume(a, ~air, air_level)
+    blab, bn = _components(~air)
+    if bn == 0:
+        raise SegmentationError(f"{STAGE}: {name}: empty body mask after removing air")
+    bsizes = np.bincount(blab.ravel())
+    bsizes[0] = 0
+    body = blab == int(bsizes.argmax())
+    markers_mm, marker_mask = _markers(pre, a, body, sp, marker_diameter_mm)
+    body &= ~marker_mask
+    return air, body, markers_mm, marker_mask
+
+
+def _surface_partial_volume(a: np.ndarray, body: np.ndarray, air_level: float) -> np.ndarray:
+    """The body's outer voxels (face-adjacent to the rest) that are darker than the midpoint
+    of the air level and their brightest body neighbour (of 26): partial-volume voxels that
+    are more air than tissue, whatever the tissue at the surface (bright skin, mid-grey
+    muscle)."""
+    outer = body & ~ndimage.binary_erosion(body, border_value=1)
+    idx = np.nonzero(outer)
+    if idx[0].size == 0:
+        return outer
+    local = np.full(idx[0].size, -np.inf, np.float32)
+    shape = np.asarray(a.shape)
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                if dz == dy == dx == 0:
+                    continue
+                j = [np.clip(i + d, 0, n - 1) for i, d, n in zip(idx, (dz, dy, dx), shape)]
+                v = np.where(body[tuple(j)], a[tuple(j)], -np.inf)
+                np.maximum(local, v, out=local)
+    drop = a[idx] < 0.5 * (air_level + local)
+    out = np.zeros(a.shape, bool)
+    out[tuple(i[drop] for i in idx)] = True
+    return out
+

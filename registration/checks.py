@@ -1,0 +1,133 @@
+"""Checks of a refined registration against the fiducial-only solution: the error a
+point-based fit is expected to have (:func:`predicted_tre`) and the two rules of
+:func:`check_registration`, on points of a mask (:func:`mask_points`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+import SimpleITK as sitk
+
+from registration.transforms import transform_points
+
+
+def mask_points(mask: sitk.Image, *, max_points: int = 4000) -> np.ndarray:
+    """(N,3) physical points (mm) of at most ``max_points`` voxels of a binary mask, evenly
+    strided in memory order (deterministic)."""
+    idx = np.flatnonzero(sitk.GetArrayViewFromImage(mask).ravel() > 0)
+    if len(idx) == 0:
+        return np.zeros((0, 3))
+    idx = idx[:: max(1, len(idx) // max_points)]
+    zyx = np.stack(np.unravel_index(idx, sitk.GetArrayViewFromImage(mask).shape), axis=1)
+    d = np.asarray(mask.GetDirection(), float).reshape(3, 3)
+    return (zyx[:, ::-1] * np.asarray(mask.GetSpacing())) @ d.T + np.asarray(mask.GetOrigin())
+
+
+def predicted_tre(points: np.ndarray, fiducials: np.ndarray, fle_mm: float) -> np.ndarray:
+    """Expected target registration error (mm) of a point-based rigid fit at ``points``.
+
+    Fitzpatrick, West & Maurer (1998): TRE^2(r) = FLE^2 / N (1 + 1/3 sum_k d_k^2 / f_k^2),
+    with d_k the distance of r from the k-th principal axis of the N fiducials and f_k the
+    RMS distance of the fiducials from that axis.
+
+    Parameters
+    ----------
+    points : (M, 3) float
+        Targets, mm.
+    fiducials : (N, 3) float
+        Fiducial positions, mm (N >= 3).
+    fle_mm : float
+        Fiducial localisation error (RMS), mm.
+
+    Returns
+    -------
+    (M,) float, mm
+    """
+    f = np.asarray(fiducials, float)
+    c = f.mean(axis=0)
+    _, _, vt = np.linalg.svd(f - c)
+    fp = (f - c) @ vt.T
+    rp = (np.asarray(points, float).reshape(-1, 3) - c) @ vt.T
+    # squared distance from axis k = sum of the squared other two coordinates
+    d2 = (rp ** 2).sum(axis=1, keepdims=True) - rp ** 2
+    f2 = np.maximum(((fp ** 2).sum(axis=1, keepdims=True) - fp ** 2).mean(axis=0), 1e-6)
+    return fle_mm * np.sqrt((1.0 + (d2 / f2).sum(axis=1) / 3.0) / len(f))
+
+
+def check_registration(
+    refined: sitk.Transform,
+    fiducial_only: sitk.Transform,
+    fixed_points: Mapping[str, np.ndarray],
+    fiducial_only_residuals: Mapping[str, float],
+    *,
+    chest_points: np.ndarray | None = None,
+    fiducial_error_mm: float = 1.0,
+    sigmas: float = 3.0,
+) -> dict:
+    """Check a refined registration against the fiducial-only solution.
+
+    Two rules, both in the reference frame:
+
+    - at the markers, the refined transform may not move a fiducial by more than the
+      localisation error (FLE) away from where the fiducial-only solution puts it;
+    - on the chest wall (``chest_points``), the two may not differ by more than ``sigmas``
+      times the error expected of the fiducial-only fit there (:func:`predicted_tre`).
+
+    The FLE is ``fiducial_error_mm`` or the one the fiducial fit's residuals imply
+    (``FRE_rms / sqrt(1 - 2/N)``), whichever is larger.
+
+    Parameters
+    ----------
+    refined, fiducial_only : SimpleITK.Transform
+        Reference -> moving transforms.
+    fixed_points : mapping label -> (3,) mm
+        The fiducials that made ``fiducial_only``, in the reference frame.
+    fiducial_only_residuals : mapping label -> float
+        Residuals (mm) of the fiducial-only fit.
+    chest_points : (M, 3) float, optional
+        Chest-wall points of the reference, mm.
+    fiducial_error_mm : float
+        Smallest FLE assumed, mm.
+    sigmas : float
+        Tolerance on the chest wall in units of the predicted TRE.
+
+    Returns
+    -------
+    dict
+        ``passed``, ``failures`` (messages), ``fle_mm``, ``fiducial_shift_mm`` per label and,
+        with ``chest_points``, ``chest_wall_shift_mm`` (mean, max) and
+        ``chest_wall_worst_ratio`` (shift / predicted TRE, worst point).
+    """
+    labels = sorted(fixed_points)
+    f = np.asarray([fixed_points[k] for k in labels], float)
+    n = len(f)
+    fre = np.sqrt(np.mean([float(fiducial_only_residuals[k]) ** 2 for k in labels]))
+    fle = max(float(fiducial_error_mm), fre / np.sqrt(max(1.0 - 2.0 / n, 1e-3)))
+    shift = np.linalg.norm(transform_points(refined, f) - transform_points(fiducial_only, f),
+                           axis=1)
+    out: dict = {"fle_mm": float(fle),
+                 "fiducial_shift_mm": {k: float(v) for k, v in zip(labels, shift)}}
+    failures = []
+    if shift.max() > fle:
+        worst = labels[int(shift.argmax())]
+        failures.append(
+            f"the refined registration moves fiducial {worst!r} {shift.max():.2f} mm away "
+            f"from the fiducial-only solution (more than the localisation error {fle:.2f} "
+            "mm): the correlation refinement walked away from the markers")
+    if chest_points is not None and len(chest_points):
+        d = np.linalg.norm(transform_points(refined, chest_points)
+                           - transform_points(fiducial_only, chest_points), axis=1)
+        ratio = d / predicted_tre(chest_points, f, fle)
+        out["chest_wall_shift_mm"] = {"mean": float(d.mean()), "max": float(d.max())}
+        out["chest_wall_worst_ratio"] = float(ratio.max())
+        if ratio.max() > sigmas:
+            failures.append(
+                f"on the chest wall the refined registration differs from the fiducial-only "
+                f"solution by up to {d.max():.2f} mm ({ratio.max():.1f} times the error "
+                f"expected of the fiducials there; limit {sigmas:g})")
+    out["passed"] = not failures
+    out["failures"] = failures
+    return out
+
+

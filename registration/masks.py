@@ -1,0 +1,89 @@
+"""Masks that drive a rigid registration: what is rigid on a label map
+(:func:`chest_wall_mask`) and balls around the fiducials (:func:`add_balls`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import SimpleITK as sitk
+from scipy import ndimage
+
+from registration.transforms import STAGE
+
+
+def add_balls(mask: sitk.Image, centres, radius_mm: float) -> sitk.Image:
+    """Copy of ``mask`` (uint8) with balls of ``radius_mm`` around (K,3) mm ``centres``."""
+    out = sitk.GetArrayFromImage(sitk.Cast(mask > 0, sitk.sitkUInt8))
+    sp = np.asarray(mask.GetSpacing(), float)[::-1]
+    for p in centres:
+        c = np.asarray(mask.TransformPhysicalPointToContinuousIndex(
+            tuple(float(v) for v in p)))[::-1]
+        lo = np.maximum(np.floor(c - radius_mm / sp).astype(int), 0)
+        hi = np.minimum(np.ceil(c + radius_mm / sp).astype(int) + 1, out.shape)
+        if np.any(hi <= lo):
+            continue
+        zz, yy, xx = np.ogrid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        d2 = (((zz - c[0]) * sp[0]) ** 2 + ((yy - c[1]) * sp[1]) ** 2
+              + ((xx - c[2]) * sp[2]) ** 2)
+        out[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] |= (d2 <= radius_mm ** 2).astype(np.uint8)
+    img = sitk.GetImageFromArray(out)
+    img.CopyInformation(mask)
+    return img
+
+
+def chest_wall_mask(
+    labels: sitk.Image, *, margin_mm: float = 6.0, breast_margin_mm: float = 0.0
+) -> sitk.Image:
+    """Mask (uint8) of what is rigid on a label map: the chest wall, breasts masked out.
+
+    The muscle (label 2), the band within ``margin_mm`` of it on the side away from the
+    breasts (thorax interior, or the air behind a muscle slab), and only the breast tissue
+    (1, 3) within ``breast_margin_mm`` in front of it. The breasts deform between positions
+    and the space in front of the muscle (air between the breasts, subcutaneous fat) is where
+    they swing, so neither may drive a rigid fit.
+
+    Parameters
+    ----------
+    labels : SimpleITK.Image
+        Reference label map (0 background, 1 breast, 2 muscle, 3 gland).
+    margin_mm, breast_margin_mm : float
+        Widths of the band behind the muscle and of the tissue layer in front of it, mm.
+
+    Returns
+    -------
+    SimpleITK.Image
+        uint8 0/1 on the label map's grid.
+    """
+    lab = sitk.Cast(labels, sitk.sitkUInt8)
+    muscle = lab == 2
+    if sitk.GetArrayViewFromImage(muscle).max() == 0:
+        raise ValueError(f"{STAGE}: the reference label map has no muscle (label 2) for the "
+                         "chest-wall mask")
+    dist = sitk.SignedMaurerDistanceMap(muscle, insideIsPositive=False, squaredDistance=False,
+                                        useImageSpacing=True)
+    a = sitk.GetArrayFromImage(lab)
+    d = sitk.GetArrayFromImage(dist)
+    breast = (a == 1) | (a == 3)
+    band = (d <= margin_mm) & (a != 2)
+    # Band components that reach the breasts hold the space in front of the muscle (a
+    # closed chest wall separates it from the thorax interior). Where the band wraps round
+    # the edge of a muscle slab, the side is the one the distance gradient faces: toward the
+    # breasts (front) or away from them.
+    comp, n = ndimage.label(band)
+    touches = np.zeros(n + 1, bool)
+    touches[np.unique(comp[breast & band])] = True
+    touches[0] = False
+    front = touches[comp]
+    if front.any():
+        spz = np.asarray(lab.GetSpacing(), float)[::-1]
+        cm = np.argwhere(a[::2, ::2, ::2] == 2).mean(axis=0)
+        cb = np.argwhere(breast[::2, ::2, ::2]).mean(axis=0)
+        toward = (cb - cm) * spz  # (z, y, x) mm, muscle -> breasts
+        toward /= max(np.linalg.norm(toward), 1e-9)
+        facing = np.zeros(d.shape, np.float32)
+        for i in range(3):
+            facing += toward[i] * np.gradient(d, spz[i], axis=i).astype(np.float32)
+        front &= facing > -0.5  # not clearly facing away from the breasts
+    keep = (a == 2) | (band & ~front) | (breast & (d <= breast_margin_mm))
+    out = sitk.GetImageFromArray(keep.astype(np.uint8))
+    out.CopyInformation(lab)
+    return out
