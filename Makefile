@@ -39,6 +39,8 @@ test-slow: setup
 
 lint: setup
 	$(BIN)/ruff check .
+	$(BIN)/python bench/house.py --json /dev/null
+	$(BIN)/python -m pytest -q tests/test_layers.py tests/test_house.py
 
 bench: setup
 	$(BIN)/python bench/gravity.py

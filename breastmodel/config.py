@@ -7,7 +7,7 @@ import json
 import platform
 import sys
 import tomllib
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -72,17 +72,28 @@ def write_atomic(path: str | Path, data: str | bytes) -> Path:
     one path never share it), is flushed to disk, and replaces ``path`` in one rename; on any
     failure the temporary file is removed and ``path`` is left as it was.
     """
+    raw = data.encode() if isinstance(data, str) else bytes(data)
+    return write_atomic_with(path, lambda tmp: tmp.write_bytes(raw))
+
+
+def write_atomic_with(path: str | Path, write: Callable[[Path], Any], *,
+                      suffix: str = ".tmp") -> Path:
+    """:func:`write_atomic` for writers that want a file name (SimpleITK, numpy, an image
+    library): ``write(tmp)`` fills a uniquely named temporary file beside ``path`` whose
+    name ends in ``suffix`` (the writer may choose its format by it: ``".seg.nrrd"``,
+    ``".png"``, ``".npz"``), which is then flushed to disk and renamed onto ``path``; on
+    any failure it is removed and ``path`` is left as it was."""
     import os
     import tempfile
 
     path = Path(path)
-    raw = data.encode() if isinstance(data, str) else bytes(data)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    tmp = Path(name)
     try:
         os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
-        with os.fdopen(fd, "wb") as f:
-            f.write(raw)
-            f.flush()
+        os.close(fd)
+        write(tmp)
+        with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:

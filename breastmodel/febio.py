@@ -14,13 +14,13 @@ import os
 import re
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from breastmodel.config import write_atomic, write_atomic_with
 from mechanics.febio import DISPLACEMENT_FILE, feb_text, read_node_data
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -224,20 +224,9 @@ def write_mesh_feb(mesh, path: str | os.PathLike, *, element: str = "ut4") -> Pa
     """Write :func:`mesh_feb_text` to ``path`` atomically; returns the path."""
     text = mesh_feb_text(mesh, element=element)
     path = Path(path)
-    _atomic_write(path, lambda tmp: Path(tmp).write_text(text, encoding="latin-1"))
-    return path
-
-
-def _atomic_write(path: Path, write) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    write_atomic(path, text.encode("latin-1"))
+    return path
 
 
 def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.PathLike | None =
@@ -297,5 +286,6 @@ def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.Path
             with open(tmp, "wb") as f:
                 np.savez_compressed(f, displacement=run.displacement, meta=json.dumps(meta))
 
-        _atomic_write(hit, write)
+        hit.parent.mkdir(parents=True, exist_ok=True)
+        write_atomic_with(hit, write)
     return run

@@ -49,3 +49,11 @@ def test_no_effect_name_outside_the_effects_package():
                 found += [f"{rel}:{line} {name!r} ({rule})"
                           for line, name, rule in effect_name_uses(text, NAMES)]
     assert found == []
+
+
+def test_no_module_over_400_lines_and_no_function_over_80():
+    """The house's size limits (issue 18), as ``python bench/house.py`` measures them."""
+    from bench.house import measure
+
+    res = measure(400, 80)
+    assert res["modules_over"] == [] and res["functions_over"] == [], res

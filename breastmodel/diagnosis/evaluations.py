@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from breastmodel.config import write_atomic_with
 from breastmodel.diagnosis.budget import Budget
 
 __all__ = ["evaluate_model"]
@@ -108,7 +109,6 @@ def base_evaluation(model: Mapping[str, Any], problem_dir: str | Path,
     """The fitted model's evaluation (stored in ``work_dir``, reused by a rerun): its record
     in the sweep's format and its solution (the variants' warm start)."""
     import json
-    import os
 
     path = work_dir / f"base-{model_hash({'model': model, **settings})}.npz"
     if path.is_file():
@@ -126,11 +126,10 @@ def base_evaluation(model: Mapping[str, Any], problem_dir: str | Path,
            "result": {"mhd_mm": res["mhd_mm"], "solves": res["solves"],
                       "eval_s": res["wall_s"]}}
     work_dir.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-    np.savez(tmp, meta=json.dumps(rec), X=res["X"],
-             **{f"u_{p}": res["u"][p] for p in pos}, **{f"r_{p}": res["residual"][p]
-                                                        for p in pos})
-    os.replace(tmp, path)
+    arrays = {"X": res["X"], **{f"u_{p}": res["u"][p] for p in pos},
+              **{f"r_{p}": res["residual"][p] for p in pos}}
+    write_atomic_with(path, lambda tmp: np.savez(tmp, meta=json.dumps(rec), **arrays),
+                      suffix=".npz")
     rec["result"]["residual"] = res["residual"]
     return rec, {"X": res["X"], "u": res["u"]}
 

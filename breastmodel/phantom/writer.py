@@ -27,6 +27,7 @@ from breastmodel.phantom.motion import patient_gravity, random_motion
 from breastmodel.phantom.rendering import intensity_table, render
 from breastmodel.phantom.voxelize import Grid, voxelize
 from imaging.io import write_volume
+from registration.transforms import transform_text
 
 __all__ = ["make_phantom", "displacement", "truth_folder", "INTENSITY_SCALE"]
 
@@ -262,7 +263,7 @@ def _write_volumes(out: Path, truth: Path, name: str, grid: Grid, tissue, render
     write_volume(_image(stored, grid), out / f"{name}.nii.gz")
     write_volume(_image(tissue.fine, grid), truth / f"{name}_tissue.nii.gz")
     write_volume(_image(tissue.seg, grid), truth / f"{name}_labels.nii.gz")
-    sitk.WriteTransform(motion.to_sitk(), str(truth / f"{name}_motion.tfm"))
+    write_atomic(truth / f"{name}_motion.tfm", transform_text(motion.to_sitk()))
 
 
 def _position_truth(motion, g_patient, g_image, tilt, markers, landmarks, rendered, tissue,

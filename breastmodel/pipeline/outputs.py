@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 from collections.abc import Mapping
 from pathlib import Path
@@ -50,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from breastmodel.config import write_atomic, write_atomic_with
 from imaging.labels import LABEL_NAMES, LABEL_RGB
 
 log = logging.getLogger("breastmodel.pipeline")
@@ -67,9 +67,7 @@ LABEL_TABLE = {code: (name, LABEL_RGB[code]) for code, name in LABEL_NAMES.items
 
 
 def _copy(src: Path, dst: Path) -> None:
-    tmp = dst.with_name(f".{dst.name}.tmp")
-    shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    write_atomic_with(dst, lambda tmp: shutil.copyfile(src, tmp))
 
 
 def write_position_meshes(out: Path, problem, position: str,
@@ -161,9 +159,7 @@ def write_febio(out: Path, problem, model: Mapping[str, Any], position: str,
         log.warning("outputs: no model_%s.feb: %s", position, exc)
         return {"file": None, "why": str(exc)}
     name = f"model_{position}.feb"
-    tmp = out / f".{name}.tmp"
-    tmp.write_text(text, encoding="latin-1")
-    os.replace(tmp, out / name)
+    write_atomic(out / name, text.encode("latin-1"))
     approx = [ln.split("approximation:", 1)[1].removesuffix("-->").strip()
               for ln in text.splitlines() if "<!-- approximation:" in ln]
     return {"file": name, "element": element, "approximations": approx}
@@ -179,7 +175,6 @@ def write_vtm(path: Path, blocks: Mapping[str, Mapping[str, str]]) -> Path:
     """
     from xml.sax.saxutils import quoteattr
 
-    from breastmodel.config import write_atomic
 
     lines = ['<?xml version="1.0"?>',
              '<VTKFile type="vtkMultiBlockDataSet" version="1.0" byte_order="LittleEndian" '
@@ -198,7 +193,6 @@ def write_vtm(path: Path, blocks: Mapping[str, Mapping[str, str]]) -> Path:
 def write_colour_tables(out: Path) -> list[str]:
     """``labels.ctbl`` (3D Slicer colour table) and ``labels_itksnap.txt`` (ITK-SNAP label
     description) for the label codes of :data:`LABEL_TABLE`; returns the file names."""
-    from breastmodel.config import write_atomic
 
     ctbl = ["# 3D Slicer colour table of breastmodel label maps",
             "# index name R G B A (0-255)"]
@@ -241,9 +235,8 @@ def write_slicer_segmentation(labels, path: Path) -> Path:
                            ("Color", " ".join(f"{v / 255:.4f}" for v in rgb)),
                            ("LabelValue", str(c)), ("Layer", "0"), ("Extent", extent)):
             img.SetMetaData(f"Segment{i}_{key}", value)
-    tmp = path.with_name(f".{path.name.removesuffix('.seg.nrrd')}.tmp.seg.nrrd")
-    sitk.WriteImage(img, str(tmp), useCompression=True)
-    os.replace(tmp, path)
+    write_atomic_with(path, lambda tmp: sitk.WriteImage(img, str(tmp), useCompression=True),
+                      suffix=".seg.nrrd")
     return path
 
 
@@ -267,7 +260,6 @@ def export_images(out: Path, register_dir: Path, reference: str,
     """
     import SimpleITK as sitk
 
-    from breastmodel.config import write_atomic
     from imaging.markups import write_markups
     from registration.transforms import read_transform, transform_points, transform_text
 

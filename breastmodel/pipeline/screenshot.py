@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
+
+from breastmodel.config import write_atomic_with
 
 __all__ = ["CHROMIUM_FLAGS", "find_chromium", "screenshot"]
 
@@ -67,7 +68,6 @@ def screenshot(html_path: str | Path, png_path: str | Path, *, width: int = 1200
         a = np.asarray(img)
         rows = np.flatnonzero((a < 250).any(axis=(1, 2)))
         bottom = int(rows[-1]) + 20 if len(rows) else a.shape[0]
-        tmp = png_path.with_name(f".{png_path.stem}.tmp.png")
-        img.crop((0, 0, a.shape[1], min(bottom, a.shape[0]))).save(tmp)
-        os.replace(tmp, png_path)
+        cropped = img.crop((0, 0, a.shape[1], min(bottom, a.shape[0])))
+        write_atomic_with(png_path, cropped.save, suffix=".png")
     return png_path

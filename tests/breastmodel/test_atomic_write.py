@@ -63,3 +63,30 @@ def test_bytes_are_written_verbatim(tmp_path):
     path = tmp_path / "b.bin"
     write_atomic(path, b"\x00\x01\xff")
     assert path.read_bytes() == b"\x00\x01\xff"
+
+
+def test_a_writer_that_wants_a_file_name_gets_the_suffix_it_asked_for(tmp_path):
+    """SimpleITK, numpy and image libraries pick the format from the name: the temporary
+    file ends in the given suffix; a writer that fails leaves the target and no temp."""
+    import numpy as np
+
+    from breastmodel.config import write_atomic_with
+
+    seen = []
+
+    def save(tmp):
+        seen.append(tmp.name)
+        np.savez(tmp, a=np.arange(3))
+
+    path = write_atomic_with(tmp_path / "r.npz", save, suffix=".npz")
+    assert seen[0].startswith(".r.npz.") and seen[0].endswith(".npz")
+    assert np.load(path)["a"].tolist() == [0, 1, 2]
+
+    def broken(tmp):
+        tmp.write_bytes(b"half")
+        raise RuntimeError("writer failed")
+
+    with pytest.raises(RuntimeError, match="writer failed"):
+        write_atomic_with(path, broken, suffix=".npz")
+    assert np.load(path)["a"].tolist() == [0, 1, 2]
+    assert [q.name for q in tmp_path.iterdir()] == ["r.npz"]
