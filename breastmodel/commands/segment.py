@@ -30,17 +30,17 @@ Config (TOML, all optional)::
 from __future__ import annotations
 
 import argparse
-import json
-import logging
-from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
 
-log = logging.getLogger("breastmodel.segment")
-
-PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations", "denoise_method"}
-SEGMENT_KEYS = {"gland", "skin_level", "levelset_iterations", "curvature",
-                "marker_diameter_mm", "min_region_mm3", "positions", "contrast"}
+from breastmodel.pipeline.segment import (  # noqa: F401 - the library side, re-exported
+    PREPROCESS_KEYS,
+    SEGMENT_KEYS,
+    read_config,
+    read_seeds,
+    segment_position,
+    segment_subject,
+    update_summary,
+)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -64,166 +64,6 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="CSV 'position,label,x,y,z' of user seeds (mm, LPS)")
     p.add_argument("--gland", action="store_true", help="also label glandular tissue (3)")
     return p
-
-
-def read_config(path: Path | None) -> dict[str, dict[str, Any]]:
-    """Read and check the [preprocess] and [segment] tables (missing file section: {})."""
-    from breastmodel.config import check_keys, load_toml
-
-    if path is None:
-        return {"preprocess": {}, "segment": {}}
-    raw = load_toml(path, stage="segment")
-    pre = dict(raw.get("preprocess", {}))
-    seg = dict(raw.get("segment", {}))
-    check_keys(pre, PREPROCESS_KEYS, where=f"segment: {path} [preprocess]")
-    check_keys(seg, SEGMENT_KEYS, where=f"segment: {path} [segment]")
-    return {"preprocess": pre, "segment": seg}
-
-
-def read_seeds(path: Path) -> dict[str, list]:
-    """Seeds CSV -> {position: [Seed, ...]}; one clear error for a malformed row."""
-    import csv
-
-    from imaging.segment import Seed
-
-    if not path.is_file():
-        raise FileNotFoundError(f"segment: seeds file {path} does not exist")
-    out: dict[str, list] = {}
-    with path.open(newline="") as f:
-        for i, row in enumerate(csv.DictReader(f), start=2):
-            try:
-                seed = Seed(int(row["label"]), (float(row["x"]), float(row["y"]),
-                                                float(row["z"])))
-                out.setdefault(row["position"].strip(), []).append(seed)
-            except (KeyError, TypeError, ValueError):
-                raise ValueError(f"segment: {path} line {i}: expected columns "
-                                 "position,label,x,y,z with numbers") from None
-    return out
-
-
-def segment_position(
-    subject,
-    position: str,
-    out: Path,
-    *,
-    seeds: Sequence = (),
-    preprocess_options: Mapping[str, Any] | None = None,
-    segment_options: Mapping[str, Any] | None = None,
-    truth: Path | None = None,
-) -> dict[str, Any]:
-    """Segment one position and write its label map and QA picture; return its summary.
-
-    Parameters
-    ----------
-    subject : imaging.subject.Subject
-        The subject (from :func:`imaging.subject.read_subject`).
-    position : str
-        Position name.
-    out : Path
-        Output folder.
-    seeds : sequence of imaging.segment.Seed
-        User seeds for this position.
-    preprocess_options, segment_options : mapping
-        Keyword options of :func:`imaging.segment.segment_volume`.
-    truth : Path, optional
-        Folder with ``<position>_labels.nii.gz`` for Dice.
-
-    Returns
-    -------
-    dict
-        volumes_ml, breast volumes by side, levels, notes, and dice when truth is given.
-    """
-    from imaging.io import read_volume, write_volume
-    from imaging.qa import dice, qa_figure, save_figure, tissue_volumes_ml
-    from imaging.segment import breast_volumes_by_side, segment_volume
-
-    opts = dict(preprocess_options or {})
-    opts.update({k: v for k, v in (segment_options or {}).items() if k != "positions"})
-    img = subject.load(position)
-    res = segment_volume(img, seeds=list(seeds), name=str(subject.positions[position].volume_path),
-                         **opts)
-    out.mkdir(parents=True, exist_ok=True)
-    write_volume(res.labels, out / f"{position}_labels.nii.gz")
-    pts = [s.point for s in seeds]
-    fig = qa_figure(img, res.labels, seeds=pts or None, title=f"{subject.id} {position}")
-    save_figure(fig, out / f"{position}_qa.png")
-    summary: dict[str, Any] = {
-        "labels": f"{position}_labels.nii.gz",
-        "qa": f"{position}_qa.png",
-        "volumes_ml": tissue_volumes_ml(res.labels),
-        "breast_by_side_ml": breast_volumes_by_side(res.labels, res.midline_x_mm),
-        "midline_x_mm": res.midline_x_mm,
-        "levels": res.levels,
-        "markers_removed": len(res.markers_mm),
-        "seeds": [{"label": s.label, "point_mm": list(s.point)} for s in seeds],
-        "notes": list(res.notes),
-        "confidence": res.confidence,
-        "contrast": res.contrast,
-    }
-    if truth is not None:
-        tpath = Path(truth) / f"{position}_labels.nii.gz"
-        if tpath.is_file():
-            summary["dice"] = dice(res.labels, read_volume(tpath))
-        else:
-            log.warning("segment: no truth label map %s; Dice skipped", tpath)
-    return summary
-
-
-def update_summary(out: Path, position: str, summary: Mapping[str, Any]) -> None:
-    """Merge one position's summary into ``out/segmentation.json`` (atomic)."""
-    from breastmodel.config import write_json
-
-    path = out / "segmentation.json"
-    data = {}
-    if path.is_file():
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError:
-            log.warning("segment: %s was unreadable; starting it afresh", path)
-    data.setdefault("positions", {})[position] = dict(summary)
-    write_json(path, data)
-
-
-def segment_subject(
-    subject_dir: Path,
-    out: Path,
-    *,
-    truth: Path | None = None,
-    config: Path | None = None,
-    positions: Sequence[str] | None = None,
-    seeds: Mapping[str, Sequence] | None = None,
-    gland: bool | None = None,
-) -> dict[str, Any]:
-    """Segment the positions of a subject folder into ``out``; return the summaries."""
-    from breastmodel.config import write_provenance
-    from imaging.subject import read_subject
-
-    cfg = read_config(config)
-    if gland is not None:
-        cfg["segment"]["gland"] = gland
-    subject = read_subject(subject_dir)
-    names = list(positions or cfg["segment"].get("positions") or subject.positions)
-    unknown = sorted(set(names) - set(subject.positions))
-    if unknown:
-        raise ValueError(f"segment: {subject_dir}: unknown position(s) {unknown}; "
-                         f"the subject has {sorted(subject.positions)}")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_provenance(out, {**cfg, "subject": str(subject_dir),
-                           "truth": str(truth) if truth else None}, command="segment")
-    results = {}
-    for name in names:
-        log.info("segment: %s", name)
-        summary = segment_position(
-            subject, name, out, seeds=(seeds or {}).get(name, ()),
-            preprocess_options=cfg["preprocess"], segment_options=cfg["segment"], truth=truth,
-        )
-        update_summary(out, name, summary)
-        results[name] = summary
-        if "dice" in summary:
-            log.info("segment: %s Dice %s", name,
-                     {k: round(v, 4) for k, v in summary["dice"].items()})
-    return results
 
 
 def run(args: argparse.Namespace) -> int:

@@ -56,7 +56,7 @@ def _labels_for(subject, name: str, seg_dir: Path | None, out: Path):
         if p.is_file():
             return read_volume(p)
         log.warning("register: %s not found; segmenting %s now", p, name)
-    from breastmodel.commands.segment import segment_position, update_summary
+    from breastmodel.pipeline.segment import segment_position, update_summary
 
     seg_out = out / "segmentation"
     summary = segment_position(subject, name, seg_out)

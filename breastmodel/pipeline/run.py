@@ -50,7 +50,7 @@ def _segment(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path],
     def fn(d: Path) -> None:
         import SimpleITK as sitk
 
-        from breastmodel.commands.segment import segment_position
+        from breastmodel.pipeline.segment import segment_position
         from imaging.io import read_volume, write_volume
 
         vol = subject.positions[position].volume_path
