@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping, Sequence
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 from breastmodel.config import ConfigError, check_keys, load_toml
+from mechanics.solver import SolverOptions
 
 __all__ = [
     "DEFAULTS", "FIT_PARAMETER_KEYS", "check_model", "get_param", "load_run_config",
@@ -26,10 +28,8 @@ _REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "i
                   "sampling", "mask_margin_mm", "marker_diameter_mm", "seed",
                   "require_fiducials", "learning_rate_mm", "fine_levels", "threads",
                   "fiducial_error_mm"}
-_SOLVER_KEYS = {"tol", "max_newton", "initial_steps", "min_step", "max_cutbacks",
-                "grow_below", "linear_solver", "line_search", "stagnate_after",
-                "stagnate_above", "singular_shift", "dtol", "etol", "accept_residual",
-                "threads"}
+#: every option of the solver (:class:`mechanics.solver.SolverOptions`), by its field names
+_SOLVER_KEYS = {f.name for f in fields(SolverOptions)}
 FIT_PARAMETER_KEYS = {"min", "max", "step", "values"}
 
 #: The defaults: a Neo-Hookean breast (1 kPa), a stiff muscle layer (10 kPa), fixed chest

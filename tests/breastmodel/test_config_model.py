@@ -87,3 +87,18 @@ def test_a_new_effect_with_options_is_one_class(monkeypatch):
                 if c.name == "test_prestress")
     assert cand.effects == {"test_prestress": {"sigma": 2.0}}
     assert cand.start == {"effects.test_prestress.sigma": 2.0}
+
+
+def test_solver_table_takes_every_solver_option_and_refuses_the_rest():
+    """The [solver] keys are the solver's own option fields, so a new option is settable
+    from run.toml without a second list to keep in step."""
+    from dataclasses import fields
+
+    from mechanics.solver import SolverOptions
+
+    names = {f.name for f in fields(SolverOptions)}
+    assert {"reuse_factor", "reuse_below", "reuse_max_iterations", "progress"} <= names
+    cfg = resolve_config({"solver": {"reuse_factor": False, "reuse_max_iterations": 40}})
+    assert SolverOptions(**cfg["solver"]).reuse_factor is False
+    with pytest.raises(ConfigError, match=r"\[solver\].*reuse_factr"):
+        resolve_config({"solver": {"reuse_factr": False}})
