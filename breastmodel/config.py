@@ -2,33 +2,23 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import platform
 import sys
 import tomllib
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
 import tomli_w
 
+from imaging.atomic import write_atomic, write_atomic_with  # noqa: F401 - the writer
+
 _TRACKED_PACKAGES = (
     "breastmodel", "numpy", "scipy", "SimpleITK", "scikit-image", "opencv-python-headless",
     "pymeshlab", "pytetwild", "open3d-cpu", "meshio", "dask", "pypardiso",
 )
-
-
-def _umask() -> int:
-    import os
-
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _umask()
 
 
 class ConfigError(ValueError):
@@ -63,44 +53,6 @@ def package_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             continue
     return out
-
-
-def write_atomic(path: str | Path, data: str | bytes) -> Path:
-    """Write text or bytes so that a reader never sees a half-written file.
-
-    The data goes to a uniquely named temporary file in the target folder (two writers of
-    one path never share it), is flushed to disk, and replaces ``path`` in one rename; on any
-    failure the temporary file is removed and ``path`` is left as it was.
-    """
-    raw = data.encode() if isinstance(data, str) else bytes(data)
-    return write_atomic_with(path, lambda tmp: tmp.write_bytes(raw))
-
-
-def write_atomic_with(path: str | Path, write: Callable[[Path], Any], *,
-                      suffix: str = ".tmp") -> Path:
-    """:func:`write_atomic` for writers that want a file name (SimpleITK, numpy, an image
-    library): ``write(tmp)`` fills a uniquely named temporary file beside ``path`` whose
-    name ends in ``suffix`` (the writer may choose its format by it: ``".seg.nrrd"``,
-    ``".png"``, ``".npz"``), which is then flushed to disk and renamed onto ``path``; on
-    any failure it is removed and ``path`` is left as it was."""
-    import os
-    import tempfile
-
-    path = Path(path)
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    tmp = Path(name)
-    try:
-        os.fchmod(fd, 0o666 & ~_UMASK)  # mkstemp makes 0600; give what open() would
-        os.close(fd)
-        write(tmp)
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def write_json(path: str | Path, data: Any) -> None:

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from imaging.atomic import write_atomic_with
+
 __all__ = ["VolumeError", "read_volume", "write_volume", "check_volume", "check_nifti",
            "check_path", "MAX_SPACING_MM", "MAX_VOXELS"]
 
@@ -326,12 +328,7 @@ def write_volume(image: sitk.Image, path: str | Path, *, compress: bool = True) 
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # Same folder (atomic rename) and same extension (the writer picks the format from it).
-    tmp = path.with_name(f".tmp{os.getpid()}-{path.name}")
-    try:
-        sitk.WriteImage(image, str(tmp), compress)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    # the writer picks the format from the extension: the temporary file keeps it
+    suffix = "".join(path.suffixes[-2:]) if path.name.endswith(".gz") else path.suffix
+    return write_atomic_with(path, lambda tmp: sitk.WriteImage(image, str(tmp), compress),
+                             suffix=suffix)

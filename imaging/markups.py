@@ -17,11 +17,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+
+from imaging.atomic import write_atomic
 
 __all__ = ["MarkupsError", "read_markups", "read_fiducial_markups", "write_markups",
            "markups_files"]
@@ -168,8 +169,5 @@ def write_markups(path: str | Path, lists: Mapping[str, Mapping[str, np.ndarray]
         markups.append({"type": "Fiducial", "name": str(name), "coordinateSystem": system,
                         "coordinateUnits": "mm", "locked": False, "labelFormat": "%N-%d",
                         "lastUsedControlPointNumber": len(cps), "controlPoints": cps})
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps({"@schema": SCHEMA, "markups": markups}, indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
+    return write_atomic(path, json.dumps({"@schema": SCHEMA, "markups": markups}, indent=2)
+                        + "\n")

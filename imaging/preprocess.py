@@ -6,12 +6,13 @@ modified); geometry (origin, spacing, direction) survives each step except resam
 from __future__ import annotations
 
 import hashlib
-import os
 from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
+
+from imaging.atomic import write_atomic_with
 
 STAGE = "preprocess"
 
@@ -184,9 +185,8 @@ def n4_correct(
         _remember(key, out)
         if cache is not None:
             Path(cache).mkdir(parents=True, exist_ok=True)
-            tmp = Path(cache) / f".n4_{key}.{os.getpid()}.nrrd"
-            sitk.WriteImage(out, str(tmp))
-            os.replace(tmp, Path(cache) / f"n4_{key}.nrrd")
+            write_atomic_with(Path(cache) / f"n4_{key}.nrrd",
+                              lambda tmp: sitk.WriteImage(out, str(tmp)), suffix=".nrrd")
     return out
 
 

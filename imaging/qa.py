@@ -6,12 +6,12 @@ called by the command and the notebook, never by compute code.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
+from imaging.atomic import write_atomic_with
 from imaging.labels import BREAST, BREAST_TISSUE, GLAND, LABEL_COLOURS, TISSUES
 
 
@@ -171,7 +171,4 @@ def qa_figure(img: sitk.Image, labels: sitk.Image, *, seeds=None, centre=None, t
 
 def save_figure(fig, path: str | Path, *, dpi: int = 90) -> None:
     """Save a figure as PNG atomically."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=dpi)
-    os.replace(tmp, path)
+    write_atomic_with(path, lambda tmp: fig.savefig(tmp, dpi=dpi), suffix=".png")

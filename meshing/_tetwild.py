@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from imaging.atomic import write_atomic_with
+
 SEED = 20211  # returned to fTetWild in place of a hardware random number
 _GETVAL = "_ZNSt13random_device9_M_getvalEv"
 _GUARD = "_ZGVZN12floatTetWild6Random4nextEiiE3gen"  # guard of Random::next's static gen
@@ -266,9 +268,7 @@ def _main(src: str, dst: str) -> None:
     if why is not None:
         print(f"meshing: {why}", file=sys.stderr)
     nodes, tets = _run_ftetwild(v, f, options, sizing)
-    tmp = Path(dst).with_name("out.tmp.npz")
-    np.savez(tmp, nodes=nodes, tets=tets)
-    os.replace(tmp, dst)
+    write_atomic_with(dst, lambda tmp: np.savez(tmp, nodes=nodes, tets=tets), suffix=".npz")
 
 
 if __name__ == "__main__":

@@ -6,11 +6,11 @@ FEBio ``.feb`` files come from the one writer, :mod:`mechanics.febio`
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
+from imaging.atomic import write_atomic_with
 from mechanics.mesh import Mesh
 
 
@@ -18,21 +18,9 @@ def _atomic(path: Path, write) -> Path:
     """Run ``write(tmp)`` on a uniquely named temporary file in the target folder, then
     rename it to ``path`` (readers never see a partial file; two writers never share a
     temporary name); the temporary file is removed on failure."""
-    import tempfile
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
-                                dir=path.parent)
-    os.close(fd)
-    tmp = Path(name)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    return write_atomic_with(path, write, suffix=path.suffix)
 
 
 def point_data(mesh: Mesh) -> dict[str, np.ndarray]:

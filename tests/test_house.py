@@ -57,3 +57,18 @@ def test_no_module_over_400_lines_and_no_function_over_80():
 
     res = measure(400, 80)
     assert res["modules_over"] == [] and res["functions_over"] == [], res
+
+
+def test_files_are_replaced_only_by_the_one_atomic_writer():
+    """Outside ``imaging/atomic.py`` nothing renames a temporary file onto an output, but
+    registration's own copy (it imports no other stage) and the stage cache, which renames
+    whole folders."""
+    allowed = {"imaging/atomic.py", "registration/transforms.py", "breastmodel/cache.py"}
+    found = []
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            rel = str(path.relative_to(ROOT))
+            text = path.read_text(encoding="utf-8")
+            if rel not in allowed and ("os.replace(" in text or "os.rename(" in text):
+                found.append(rel)
+    assert found == []
