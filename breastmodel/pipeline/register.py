@@ -7,10 +7,14 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from imaging.subject import Subject
 
 log = logging.getLogger("breastmodel.register")
 
@@ -23,12 +27,17 @@ _RIGID_KEYS = ("max_residual_mm", "marker_mask_mm", "iterations", "sampling",
                "learning_rate_mm", "fine_levels", "seed", "threads", "fiducial_error_mm")
 
 
-def read_config(path: Path | None) -> dict[str, Any]:
-    """The ``[register]`` table of a TOML file (empty without one), its keys checked."""
+def read_config(path: Path | Mapping[str, Any] | None) -> dict[str, Any]:
+    """The ``[register]`` table of a TOML file (empty without one), or the table itself
+    when given as a mapping, its keys checked."""
     from breastmodel.config import check_keys, load_toml
 
     if path is None:
         return {}
+    if isinstance(path, Mapping):
+        cfg = dict(path)
+        check_keys(cfg, REGISTER_KEYS, where="register: [register]")
+        return cfg
     cfg = dict(load_toml(path, stage="register").get("register", {}))
     check_keys(cfg, REGISTER_KEYS, where=f"register: {path} [register]")
     return cfg
@@ -64,22 +73,23 @@ def _labels_for(subject, name: str, seg_dir: Path | None, out: Path):
     return read_volume(seg_out / f"{name}_labels.nii.gz")
 
 
-def register_subject(subject_dir: Path, out: Path, *, truth: Path | None = None,
-                     seg_dir: Path | None = None, config: Path | None = None) -> dict[str, Any]:
+def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | None = None,
+                     seg_dir: Path | None = None,
+                     config: Path | Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Register every position of a subject onto its reference; write the outputs.
 
     Parameters
     ----------
-    subject_dir : Path
-        Subject folder (``subject.toml`` and volumes).
+    subject_dir : Path or imaging.subject.Subject
+        Subject folder (``subject.toml`` and volumes), or the subject already read.
     out : Path
         Output folder (made if missing); each file is written atomically, as it is done.
     truth : Path, optional
         Phantom truth folder (``truth.json``): adds TRE and rotation error per position.
     seg_dir : Path, optional
         Folder of ``<position>_labels.nii.gz``; positions without one are segmented here.
-    config : Path, optional
-        TOML with a ``[register]`` table.
+    config : Path or mapping, optional
+        TOML with a ``[register]`` table, or that table.
 
     Returns
     -------
@@ -96,18 +106,18 @@ def register_subject(subject_dir: Path, out: Path, *, truth: Path | None = None,
     from breastmodel.errors import StageError
     from imaging.fiducials import find_fiducials
     from imaging.io import write_volume
-    from imaging.subject import read_subject
+    from imaging.subject import Subject, read_subject
     from registration.rigid import chest_wall_mask
 
     cfg = read_config(config)
     require = _require_fiducials(cfg, config)
-    subject = read_subject(subject_dir)
+    subject = subject_dir if isinstance(subject_dir, Subject) else read_subject(subject_dir)
     if require and not subject.fiducials:
         raise StageError("register", "require_fiducials = true but the subject has no "
                          "fiducials.csv", subject.root)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_provenance(out, {"register": cfg, "subject": str(subject_dir),
+    write_provenance(out, {"register": cfg, "subject": str(subject.root),
                            "truth": str(truth) if truth else None,
                            "seg_dir": str(seg_dir) if seg_dir else None}, command="register")
     ref = subject.reference

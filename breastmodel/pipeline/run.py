@@ -82,18 +82,15 @@ def _segment(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path],
 
 def _register(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
     def fn(d: Path) -> None:
-        import tomli_w
-
         from breastmodel.pipeline.register import register_subject
 
         labels = d / "labels_in"
         labels.mkdir()
         for pos, folder in seg_dirs.items():
             shutil.copy2(folder / f"{pos}_labels.nii.gz", labels / f"{pos}_labels.nii.gz")
-        cfg_path = d / "register.toml"
-        cfg_path.write_text(tomli_w.dumps({"register": dict(cfg["register"])}))
         try:
-            register_subject(subject.root, d, seg_dir=labels, config=cfg_path)
+            # the subject as read once by the run, the [register] table as a value
+            register_subject(subject, d, seg_dir=labels, config=cfg["register"])
         except StageError:
             raise
         except (ValueError, RuntimeError) as exc:
