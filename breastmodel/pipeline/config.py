@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from breastmodel.config import ConfigError, check_keys, load_toml
+from breastmodel.pipeline.register import REGISTER_KEYS
+from breastmodel.pipeline.segment import PREPROCESS_KEYS, SEGMENT_KEYS
 from mechanics.solver import SolverOptions
 
 __all__ = [
@@ -21,13 +23,11 @@ __all__ = [
     "materials_by_code", "resolve_config", "set_params",
 ]
 
-_SEGMENT_KEYS = {"labels", "gland", "skin_level", "levelset_iterations", "curvature",
-                 "marker_diameter_mm", "min_region_mm3", "contrast"}
-_PREPROCESS_KEYS = {"n4", "n4_shrink", "isotropic_mm", "denoise_iterations", "denoise_method"}
-_REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
-                  "sampling", "mask_margin_mm", "marker_diameter_mm", "seed",
-                  "require_fiducials", "learning_rate_mm", "fine_levels", "threads",
-                  "fiducial_error_mm"}
+# the stages' own keys, so that run.toml and the stage commands accept the same tables: a
+# run takes its positions from the subject and may give truth label maps instead
+_SEGMENT_KEYS = (SEGMENT_KEYS - {"positions"}) | {"labels"}
+_PREPROCESS_KEYS = PREPROCESS_KEYS
+_REGISTER_KEYS = REGISTER_KEYS
 #: every option of the solver (:class:`mechanics.solver.SolverOptions`), by its field names
 _SOLVER_KEYS = {f.name for f in fields(SolverOptions)}
 FIT_PARAMETER_KEYS = {"min", "max", "step", "values"}
