@@ -74,8 +74,7 @@ def _labels_for(subject, name: str, seg_dir: Path | None, out: Path):
 
 
 def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | None = None,
-                     seg_dir: Path | None = None,
-                     config: Path | Mapping[str, Any] | None = None) -> dict[str, Any]:
+                     seg_dir: Path | None = None, config: Path | Mapping | None = None) -> dict:
     """Register every position of a subject onto its reference; write the outputs.
 
     Parameters

@@ -33,7 +33,7 @@ def test_demo_data_is_shipped_small_and_matches_its_recipe():
 
 @pytest.mark.slow  # the whole story: two fits, the diagnosis' ~20 model evaluations (minutes)
 def test_demo_story_names_the_hidden_effect_and_the_error_falls(tmp_path):
-    from breastmodel.commands.demo import run_story
+    from breastmodel.demo import run_story
     from breastmodel.diagnosis import load_run
 
     res = run_story(DEMO_DATA, tmp_path, mesh_size_mm=10.0, progress=False)

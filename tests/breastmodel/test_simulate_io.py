@@ -98,7 +98,7 @@ def test_simulate_former_dialect_still_solves_with_a_warning(tmp_path):
     same displacement."""
     import meshio
 
-    from breastmodel.commands.simulate import simulate_file
+    from breastmodel.simulate import simulate_file
 
     mesh = hemisphere(60.0, 4)
     write_vtu(tmp_path / "mesh.vtu", mesh)
