@@ -171,7 +171,7 @@ def _volume_cases():
 
 def _toml_cases():
     def toml(text):
-        return lambda d: (d / "subject.toml").write_text(text)
+        return lambda d: (d / "subject.toml").write_text(text, encoding="utf-8")
 
     def replace(old, new):
         assert old in TOML
