@@ -17,7 +17,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from mechanics.factorization import SingularSystem, _worth
+from mechanics.factorization import SingularSystem, factorisation_worth
 from mechanics.pardiso import _POOL as _POOL
 from mechanics.pardiso import PardisoSolver
 from mechanics.pardiso import _Handle as _Handle
@@ -38,7 +38,7 @@ class ScipySolver:
 
     def __init__(self, *, threads: int | None = None):
         self._lu = None
-        self.factor_worth = 0.0  # GMRES iterations one factorisation is worth (_worth)
+        self.factor_worth = 0.0  # GMRES iterations one factorisation is worth (factorisation_worth)
 
     def factorize(self, U: sp.csr_matrix, *, symmetric: bool = True) -> None:
         """U: upper triangle if ``symmetric`` else the full matrix."""
@@ -55,7 +55,7 @@ class ScipySolver:
         upper = np.bincount(self._lu.U.indices, minlength=n).astype(float) - 1.0  # per row
         flops = 2.0 * float(lower @ upper) + float(lower.sum())
         nnz = float(lower.sum() + upper.sum()) + 2.0 * n
-        self.factor_worth = _worth(self.name, flops, 2.0 * (nnz + A.nnz))
+        self.factor_worth = factorisation_worth(self.name, flops, 2.0 * (nnz + A.nnz))
 
     last_refinements = 0
 

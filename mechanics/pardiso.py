@@ -15,7 +15,7 @@ import time
 import numpy as np
 import scipy.sparse as sp
 
-from mechanics.factorization import SingularSystem, _worth
+from mechanics.factorization import SingularSystem, factorisation_worth
 from mechanics.threads import resolve_threads
 
 # Intel OpenMP threads spin 200 ms after each parallel region by default, holding the cores
@@ -231,12 +231,12 @@ class PardisoSolver:
 
     @property
     def factor_worth(self) -> float:
-        """GMRES iterations that cost as much as one factorisation (:func:`_worth`)."""
+        """GMRES iterations that cost as much as one factorisation (:func:`factorisation_worth`)."""
         if self._h is None:
             return 0.0
         # a substitution reads the factor twice: L and L^T (symmetric), or L and U once each
         per = (4 if self._mtype == -2 else 2) * self._h.factor_nonzeros
-        return _worth(self.name, self._h.factor_flops, per + 2.0 * self._A.nnz
+        return factorisation_worth(self.name, self._h.factor_flops, per + 2.0 * self._A.nnz
                       * (2 if self._mtype == -2 else 1))
 
     def precondition(self, b: np.ndarray) -> np.ndarray:
