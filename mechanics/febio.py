@@ -59,8 +59,8 @@ if TYPE_CHECKING:
     from mechanics.model import Model
 
 __all__ = ["DISPLACEMENT_FILE", "ELEMENTS", "KG_M3_TO_KG_MM3", "M_TO_MM", "SOLVERS",
-           "TET10_EDGES", "TOLERANCES", "FebBuilder", "FebioUnsupported", "feb_text",
-           "read_node_data", "tet10_nodes", "unsupported"]
+           "TET10_EDGES", "TOLERANCES", "FebBuilder", "FebioUnsupported", "feb_comments",
+           "feb_text", "read_node_data", "tet10_nodes", "unsupported"]
 
 
 #: Default solver tolerances and limits (FEBio's names; ``dtmin_fraction`` of a step).
@@ -108,6 +108,14 @@ def feb_text(model: Model, *, X: np.ndarray | None = None, element: str = "ut4",
     for eff in model.effects:
         eff.to_febio(feb)
     return feb.text(steps=steps, solver=solver, tol=tol)
+
+
+def feb_comments(text: str, kind: str) -> list[str]:
+    """The ``<!-- approximation: ... -->`` (``kind="approximation"``) or ``<!-- note: ... -->``
+    (``kind="note"``) comments of a ``.feb`` text that :func:`feb_text` wrote, in order."""
+    head = f"<!-- {kind}:"
+    return [ln.strip()[len(head):].removesuffix("-->").strip()
+            for ln in text.splitlines() if ln.strip().startswith(head)]
 
 
 def read_node_data(text: str, n_nodes: int, *, source: str = "FEBio logfile"

@@ -47,6 +47,7 @@ class FebBuilder:
                              f"got {self.X.shape}")
         self.allow_approximations = bool(approximate)
         self.approximations: list[str] = []
+        self.notes: list[str] = []  # how an effect is written, where FEBio's words differ
         self.lines: dict[str, list[str]] = {s: [] for s in self.SECTIONS}
         self.materials: list[str] = []  # material blocks (lines), in id order
         self.material_names: list[str] = []
@@ -269,6 +270,11 @@ class FebBuilder:
         if not self.allow_approximations:
             raise unsupported(owner, f"{why} (pass approximate=True to write it anyway)")
         self.approximations.append(f"{owner}: {why}")
+
+    def note(self, owner: str, text: str) -> None:
+        """Say in the file how ``owner`` is written, where that is not read off its values
+        (a comment, ``<!-- note: ... -->``)."""
+        self.notes.append(f"{owner}: {text}")
 
     # -- the file ------------------------------------------------------------------------
     def must_points(self, steps: int) -> list[float]:

@@ -141,6 +141,7 @@ def document(feb: FebBuilder, *, steps: int, solver: str, tol: Mapping[str, floa
     out = ['<?xml version="1.0" encoding="ISO-8859-1"?>', '<febio_spec version="4.0">',
            "\t<!-- breastmodel: units mm, kPa, mN, kg, s -->"]
     out += [f"\t<!-- approximation: {a} -->" for a in feb.approximations]
+    out += [f"\t<!-- note: {a} -->" for a in feb.notes]
     out.append('\t<Module type="solid"/>')
     out += control(feb, steps, solver, tol)
     out += ["\t<Material>"] + feb.materials + ["\t</Material>"]

@@ -167,11 +167,12 @@ def test_ligaments_as_tension_only_springs(febio, tmp_path):
 
 def test_skin_as_shells(febio, tmp_path):
     """A 0.5 mm, 20 kPa skin (plain law, no wrinkling) on the free faces of the hanging cube.
-    FEBio's tri3 shells are stiffer than our membrane: they also bend and take their thickness
-    change from the 3D law. Measured share of the bare sag the skin removes: ours 0.520,
-    FEBio 0.581 (x 1.12); at 1 mm / 10 kPa (same E H) FEBio is x 1.20, at 0.25 mm / 10 kPa
-    x 1.13 -- the gap shrinks with the thickness, as a bending share does. Asserted: FEBio's
-    skin carries more than ours, by at most 15 %."""
+    The writer's shells are FEBIO_THINNING times thinner and stiffer than the skin (same E H),
+    so their bending vanishes; their tri3 transverse shear (G H, unchanged by the thinning)
+    still stiffens the cube's 90-degree folds. Measured share of the bare sag the skin removes:
+    ours 0.520, FEBio 0.535 (x 1.027); written at the skin's own thickness FEBio's was x 1.117
+    (x 1.035 at a tenth, x 1.027 at a thousandth). Asserted: FEBio's skin carries more than
+    ours, by under 4 %."""
     free, free_f, _, _ = sag(febio, tmp_path / "free")
     skin, skin_f, _, _ = sag(febio, tmp_path / "skin",
                              skin={"E": 20.0, "thickness": 0.5, "wrinkling": "none"})
@@ -179,7 +180,45 @@ def test_skin_as_shells(febio, tmp_path):
     print(f"bottom sag: bare ours {free:.5f} FEBio {free_f:.5f}; skin ours {skin:.5f} "
           f"FEBio {skin_f:.5f} mm; FEBio/ours share carried by the skin {ratio:.3f}")
     assert skin < 0.6 * free
-    assert 1.0 < ratio < 1.15
+    assert 1.0 < ratio < 1.04
+
+
+@pytest.mark.skipif(not os.path.exists(HEMI), reason=f"hemisphere mesh not found at {HEMI}")
+def test_skin_membrane_on_the_hemisphere(febio, tmp_path):
+    """The 20k-tet hemisphere with a 0.5 mm, 10 kPa skin (plain law) on its curved face, both
+    codes on standard tets: FEBio's thinned shells give our membrane's displacement within 1 %
+    at the tip and at 99 % of the nodes. Measured: tip 10.6258 mm ours, 10.6028 FEBio (0.2 %);
+    99th percentile of |u_FEBio - u_ours| 0.77 % of max |u|, worst node 1.3 % (a skin node by
+    the held rim); FEBio's skin carries x 1.025 our share of the bare sag. On the 150k mesh:
+    0.30 %, 0.67 %, x 1.015 (``bench/membrane_vs_febio.py``): FEBio's tri3 shell discretisation,
+    shrinking with refinement. Written at the skin's own thickness: worst node 3.2 %, x 1.30."""
+    model, tip = hemisphere_model(HEMI, formulation="standard")
+    mesh = model.mesh
+    faces = boundary_faces(mesh.tets)
+    curved = faces[~np.all(np.isclose(mesh.nodes[faces, 2], 0.0), axis=1)]
+    skinned = Mesh(mesh.nodes, mesh.tets, mesh.region, node_sets=dict(mesh.node_sets),
+                   face_sets={"skin": curved})
+    effects = {"gravity": {"direction": (0, 0, -1), "g": 9.81, "density": 1000.0},
+               "fixed": {"node_set": "base"}}
+    mats = {1: {"name": model.materials[1].name, **model.materials[1].params}}
+    bare = solve(model, options=SolverOptions(tol=1e-10)).u
+    model = build_model(skinned, mats, {**effects, "skin": {"E": 10.0, "thickness": 0.5,
+                                                            "wrinkling": "none"}},
+                        formulation="standard")
+    ours = solve(model, options=SolverOptions(tol=1e-10)).u
+    run = solve_with_febio(model, work_dir=tmp_path, febio=febio, element="tet4", steps=2,
+                           threads=2)
+    assert run.converged
+    diff = np.linalg.norm(run.displacement - ours, axis=1)
+    scale = np.linalg.norm(ours, axis=1).max()
+    share = (bare[tip, 2] - run.displacement[tip, 2]) / (bare[tip, 2] - ours[tip, 2])
+    print(f"tip ours {ours[tip, 2]:.4f} FEBio {run.displacement[tip, 2]:.4f} bare "
+          f"{bare[tip, 2]:.4f} mm; |du| p99 {np.percentile(diff, 99) / scale:.2%}, worst "
+          f"{diff.max() / scale:.2%} of max |u|; FEBio/ours skin share {share:.3f}")
+    assert ours[tip, 2] > bare[tip, 2] + 0.5  # the skin holds the tip up by millimetres
+    assert np.linalg.norm(run.displacement[tip] - ours[tip]) < 0.01 * np.linalg.norm(ours[tip])
+    assert np.percentile(diff, 99) < 0.01 * scale
+    assert 1.0 < share < 1.05
 
 
 def test_tension_field_skin_needs_approximate(tmp_path):
@@ -238,7 +277,10 @@ def test_sliding_is_written_as_sliding_elastic_only_when_allowed():
     friction no tension, another stick stiffness). Not run in FEBio here: on this cube, where
     the breast rests on the contact alone, FEBio's sliding-elastic diverged from the first
     iteration (singular: no contact stiffness at zero gap), with and without friction, penalty
-    or augmented Lagrangian, small offsets, either face orientation."""
+    or augmented Lagrangian, small offsets, either face orientation. On the two mounds of
+    ``test_febio_paper_model.py`` (3456 tets, the paper's model with frictionless sliding on
+    the split interface) FEBio stopped in the first load step with negative Jacobians in prone,
+    supine and tilted gravity, so the contact formulations are compared on no problem yet."""
     import xml.etree.ElementTree as ET
 
     model = layered_model(layered_block(True), (1.0, 0.0, -4.0), sliding={"friction": 0.5})
@@ -274,6 +316,19 @@ def test_cache_computes_a_truth_once(febio, tmp_path):
     other = solve_with_febio(model, work_dir=tmp_path / "c", febio=febio, element="tet4",
                              cache_dir=tmp_path / "cache", steps=2)
     assert not other.cached  # another .feb text, another entry
+    assert first.approximations == again.approximations == ()
+
+
+def test_a_run_says_what_it_approximated(febio, tmp_path):
+    """A wrinkling skin is written approximately; the run (fresh or from the cache) carries the
+    file's approximation comments, which is what a truth records."""
+    model, _ = hanging_block(skin={"E": 20.0, "thickness": 0.5})
+    runs = [solve_with_febio(model, work_dir=tmp_path / w, febio=febio, element="tet4",
+                             cache_dir=tmp_path / "cache", approximate=True) for w in "ab"]
+    assert [r.cached for r in runs] == [False, True]
+    for r in runs:
+        (a,) = r.approximations
+        assert a.startswith("effect 'skin': tension-field wrinkling")
 
 
 def test_mesh_export_runs_in_febio(febio, tmp_path):
@@ -339,11 +394,12 @@ def test_path_points_are_febio_must_points(febio, tmp_path):
 def test_fascia_as_shells_between_the_solids(febio, tmp_path):
     """A 0.1 mm, 120 kPa fascia on the (conforming) breast-muscle interface, gravity tilted
     45 degrees: FEBio runs the shells between the two solids, and both codes see the breast
-    held back a little. FEBio's shells hold it back more: they also resist bending and
-    transverse shear, which a membrane has not. Measured lateral (x) displacement of the top
-    centre: bare 1.46855 mm in both; with fascia ours 1.46283 (-0.0057), FEBio 1.45637
-    (-0.0122); a 2 mm, 250 kPa fascia: ours -0.032, FEBio -0.121. Asserted: both reduce it,
-    FEBio by more, and by under 1 % of the bare value at 0.1 mm."""
+    held back a little. FEBio's shells (thinned, same E H) hold it back more: they keep a
+    transverse shear stiffness, which a membrane has not. Measured lateral (x) displacement of
+    the top centre: bare 1.46855 mm in both; with fascia ours 1.46283 (-0.0057), FEBio 1.45980
+    (-0.0087); a 2 mm, 250 kPa fascia: ours -0.0319, FEBio -0.0364 (written at its own
+    thickness: -0.0122 and -0.121). Asserted: both reduce it, FEBio by more, and by under 1 %
+    of the bare value at 0.1 mm."""
     bare = layered_model(layered_block(False), (1.0, 0.0, -1.0))
     top = top_centre(bare.mesh)
     u0 = solve(bare, options=SolverOptions(tol=1e-10)).u[top, 0]

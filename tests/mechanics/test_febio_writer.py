@@ -9,7 +9,8 @@ from zoo import box
 
 from mechanics.effects import Effect, register_effect
 from mechanics.effects.base import EFFECTS
-from mechanics.febio import FebioUnsupported, feb_text, read_node_data, tet10_nodes
+from mechanics.effects.membrane import FEBIO_THINNING
+from mechanics.febio import FebioUnsupported, feb_comments, feb_text, read_node_data, tet10_nodes
 from mechanics.mesh import Mesh
 from mechanics.model import build_model
 
@@ -184,10 +185,17 @@ def test_ligaments_are_grouped_by_modulus_and_skin_is_shells():
     (shell,) = [e for e in root.findall("./Mesh/Elements") if e.get("type") == "tri3"]
     assert [int(e.get("id")) for e in shell] == [mesh.n_tets + 1, mesh.n_tets + 2]
     dom = root.find("./MeshDomains/ShellDomain")
-    assert float(dom.find("shell_thickness").text) == 2.0
+    h = float(dom.find("shell_thickness").text)
+    assert h == pytest.approx(2.0 / FEBIO_THINNING)
     mat = root.find(f"./Material/material[@name='{dom.get('mat')}']")
     assert float(mat.find("density").text) == 0.0
-    assert float(mat.find("c1").text) == pytest.approx(4.0 / 2.98 / 2)
+    # the membrane's stiffness E H (c1 = E / (2 (1 + nu)) / 2) is the skin's 4 kPa x 2 mm
+    assert float(mat.find("c1").text) * h == pytest.approx(4.0 / 2.98 / 2 * 2.0)
+    assert feb_comments(feb_text(model), "note") == [
+        "effect 'skin': a membrane of E 4 kPa and thickness 2 mm, written as shells "
+        f"{FEBIO_THINNING:g} times thinner and stiffer (same E x thickness, so that the "
+        "shells' bending vanishes)"]
+    assert feb_comments(feb_text(model), "approximation") == []
 
 
 def test_reference_positions_and_surface_effects_on_tet10():
