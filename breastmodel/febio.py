@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from breastmodel.config import write_atomic, write_atomic_with
-from mechanics.febio import DISPLACEMENT_FILE, feb_text, read_node_data
+from mechanics.febio import DISPLACEMENT_FILE, feb_comments, feb_text, read_node_data
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 FEB_NAME = "model.feb"
@@ -43,6 +43,8 @@ class FebioRun:
     log_tail : the last lines of FEBio's log
     feb : path of the input file that produced it
     cached : True when read from the cache
+    approximations : what the input file wrote approximately (its ``approximation``
+        comments, :func:`mechanics.febio.feb_comments`)
     """
 
     displacement: np.ndarray
@@ -52,6 +54,7 @@ class FebioRun:
     log_tail: str
     feb: Path
     cached: bool = False
+    approximations: tuple[str, ...] = ()
 
 
 def repository_roots() -> list[Path]:
@@ -192,7 +195,8 @@ def run_febio(feb_text: str, *, work_dir: str | os.PathLike, febio: str | os.Pat
                          f"exit status {proc.returncode}); FEBio said:\n  "
                          + "\n  ".join(errors))
     u.setflags(write=False)
-    return FebioRun(u, converged, wall, iterations, tail, feb)
+    return FebioRun(u, converged, wall, iterations, tail, feb,
+                    approximations=tuple(feb_comments(feb_text, "approximation")))
 
 
 #: Placeholder neo-Hookean Young's moduli (kPa) of the mesh export: the paper's optimum order
@@ -274,7 +278,8 @@ def solve_with_febio(model, *, work_dir: str | os.PathLike, febio: str | os.Path
         if u.shape == (n, 3):
             u.setflags(write=False)
             return FebioRun(u, bool(meta["converged"]), float(meta["wall_s"]),
-                            meta["iterations"], meta["log_tail"], Path(meta["feb"]), cached=True)
+                            meta["iterations"], meta["log_tail"], Path(meta["feb"]), cached=True,
+                            approximations=tuple(feb_comments(text, "approximation")))
     run = run_febio(text, work_dir=work_dir, febio=febio, threads=threads, timeout_s=timeout_s,
                     n_nodes=n, check=check)
     if hit is not None and run.converged:

@@ -28,7 +28,7 @@ from breastmodel.phantom.deformation import (  # noqa: F401 - re-exported for ca
 from breastmodel.phantom.motion import patient_gravity
 from breastmodel.phantom.truth_model import TruthModel, default_truth_model
 from breastmodel.phantom.truth_solvers import (  # noqa: F401 - re-exported for callers
-    FEBIO_APPROXIMATIONS,
+    FEBIO_APPROXIMATED,
     FEBIO_STEPS,
     TRUTH_SOLVERS,
     find_febio_for_truth,

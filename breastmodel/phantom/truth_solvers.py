@@ -16,7 +16,7 @@ import numpy as np
 
 from breastmodel.phantom.truth_model import TruthModel
 
-__all__ = ["FEBIO_APPROXIMATIONS", "FEBIO_STEPS", "TRUTH_SOLVERS", "find_febio_for_truth",
+__all__ = ["FEBIO_APPROXIMATED", "FEBIO_STEPS", "TRUTH_SOLVERS", "find_febio_for_truth",
            "solve_position", "truth_solver_executable"]
 
 log = logging.getLogger("breastmodel.phantom")
@@ -27,10 +27,10 @@ TRUTH_SOLVERS = ("ours", "febio")
 #: two steps reach the same equilibrium as ten (to 1e-13 mm on a small subject) at a fifth of
 #: the time, and FEBio's time stepper halves a step that fails to converge.
 FEBIO_STEPS = 2
-#: Effects that FEBio can only approximate, and how (recorded with each truth that has them).
-FEBIO_APPROXIMATIONS = {
-    "skin": "FEBio shell: carries compression and bends (no tension-field wrinkling)",
-}
+#: Effects for which a truth is written with FEBio approximations allowed: the wrinkling skin,
+#: written as shells that carry compression (without it, any approximation is refused before
+#: FEBio runs). What the file approximated is recorded with each truth, in its own words.
+FEBIO_APPROXIMATED = ("skin",)
 
 
 def solve_position(model, name: str, tm: TruthModel, truth_solver: str, *, febio_path,
@@ -104,13 +104,13 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
     from breastmodel.febio import solve_with_febio
 
     febio_cache = Path(cache_dir) / "febio" if cache_dir is not None else None
-    approx = sorted(set(tm.effects) & set(FEBIO_APPROXIMATIONS))
+    approximate = bool(set(tm.effects) & set(FEBIO_APPROXIMATED))
     with tempfile.TemporaryDirectory(prefix=f"febio-{name}-") as tmp:
         wd = Path(work_dir) / name if work_dir is not None else Path(tmp)
         try:
             run = solve_with_febio(model, work_dir=wd, febio=febio_path, element="ut4",
                                    threads=1, cache_dir=febio_cache, steps=FEBIO_STEPS,
-                                   approximate=bool(approx))
+                                   approximate=approximate)
         except Exception as exc:  # noqa: BLE001 - re-raised naming the position and model
             raise RuntimeError(f"phantom: FEBio truth of position {name!r} with truth model "
                                f"{tm.name!r} failed: {exc}") from None
@@ -120,5 +120,5 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
                            f"truth model {tm.name!r}; log tail:\n{tail}")
     info = {"converged": True, "febio_wall_s": float(run.wall_s),
             "cached": bool(getattr(run, "cached", False)), "element": "ut4",
-            "febio_approximations": {k: FEBIO_APPROXIMATIONS[k] for k in approx}}
+            "febio_approximations": list(run.approximations)}
     return np.asarray(run.displacement, float), info

@@ -144,11 +144,11 @@ def write_febio(out: Path, problem, model: Mapping[str, Any], position: str,
     Returns
     -------
     dict
-        ``{"file", "element", "approximations"}``, or ``{"file": None, "why"}`` when FEBio
+        ``{"file", "element", "approximations", "notes"}``, or ``{"file": None, "why"}`` when FEBio
         cannot express the model (the file is then not written).
     """
     from breastmodel.pipeline.problem import position_model
-    from mechanics.febio import FebioUnsupported, feb_text
+    from mechanics.febio import FebioUnsupported, feb_comments, feb_text
 
     element = "tet4" if model.get("formulation") == "standard" else "ut4"
     m = position_model(problem, model, position)
@@ -160,9 +160,9 @@ def write_febio(out: Path, problem, model: Mapping[str, Any], position: str,
         return {"file": None, "why": str(exc)}
     name = f"model_{position}.feb"
     write_atomic(out / name, text.encode("latin-1"))
-    approx = [ln.split("approximation:", 1)[1].removesuffix("-->").strip()
-              for ln in text.splitlines() if "<!-- approximation:" in ln]
-    return {"file": name, "element": element, "approximations": approx}
+    return {"file": name, "element": element,
+            "approximations": feb_comments(text, "approximation"),
+            "notes": feb_comments(text, "note")}
 
 
 def write_vtm(path: Path, blocks: Mapping[str, Mapping[str, str]]) -> Path:

@@ -357,8 +357,10 @@ def _file_sections(metrics: Mapping[str, Any], images: Mapping[str, Any] | None)
         parts += ["<h2 id='febio'>FEBio models</h2>",
                   "<p>One FEBio 4 file per position on the stress-free geometry; open it in "
                   "FEBio Studio or run <code>febio4 -i FILE</code>.</p>",
-                  _table(["position", "file", "element", "approximations or why not written"],
+                  _table(["position", "file", "element", "approximations or why not written",
+                          "notes"],
                          [[p, e.get("file") or "not written", e.get("element", "-"),
-                           "; ".join(e.get("approximations") or []) or e.get("why") or "none"]
+                           "; ".join(e.get("approximations") or []) or e.get("why") or "none",
+                           "; ".join(e.get("notes") or []) or "-"]
                           for p, e in feb.items()])]
     return parts
