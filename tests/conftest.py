@@ -17,3 +17,15 @@ def mri_phantom(tmp_path_factory):
     make_phantom(subject, seed=3, small=True, positions=("supine", "prone"),
                  max_rotation_deg=15.0, max_translation_mm=30.0, progress=False)
     return subject, root / "subject_truth"
+
+
+@pytest.fixture(scope="module")
+def febio():
+    """The FEBio 4 executable (../shared/febio/febio4 or $FEBIO); the test is skipped, saying
+    why, where there is none (a user's machine)."""
+    from breastmodel.febio import FebioError, find_febio
+
+    try:
+        return find_febio()
+    except FebioError as exc:
+        pytest.skip(f"FEBio not available: {exc}")

@@ -27,14 +27,6 @@ HEMI = next((p for p in shared_path("febio", "hemisphere", "hemi_20k.npz") if p.
             shared_path("febio", "hemisphere", "hemi_20k.npz")[0])
 
 
-@pytest.fixture(scope="module")
-def febio():
-    try:
-        return find_febio()
-    except FebioError as exc:
-        pytest.skip(f"FEBio not available: {exc}")
-
-
 def rotation(axis, deg):
     a = np.asarray(axis, float) / np.linalg.norm(axis)
     t = np.radians(deg)

@@ -5,22 +5,13 @@ is FEBio's shell discretisation, shrinking with refinement. Both codes use stand
 tets, so the bulk discretisation is the same. Needs FEBio; skipped without it."""
 
 import numpy as np
-import pytest
 
-from breastmodel.febio import FebioError, find_febio, solve_with_febio
+from breastmodel.febio import solve_with_febio
 from breastmodel.phantom.mounds import mound_mesh
 from mechanics.model import build_model
 from mechanics.solver import SolverOptions, solve
 
 COARSE, FINE = (12, 8, 4, 2), (26, 16, 6, 2)  # 3456 and 19968 tets
-
-
-@pytest.fixture(scope="module")
-def febio():
-    try:
-        return find_febio()
-    except FebioError as exc:
-        pytest.skip(f"FEBio not available: {exc}")
 
 
 def paper_model(cells, *, membranes: tuple[str, ...]):
