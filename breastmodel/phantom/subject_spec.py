@@ -50,9 +50,11 @@ PHYSICS: dict[str, tuple[dict[int, dict], dict[str, dict]]] = {
     "gland": ({4: {"E_factor": 3.0}, 5: {"E_factor": 3.0}}, {}),
     # strain-stiffening (Gent) breast tissue
     "gent_breast": ({1: {"name": "gent", "Jm": 0.3}, 3: {"name": "gent", "Jm": 0.3}}, {}),
-    # FEBio approximates the skin membrane by a shell (recorded with the truth); FEBio's
-    # initialisation of that shell domain stops with "negative jacobian" on a small slab
-    # subject (the error names the position and FEBio's message)
+    # FEBio approximates the skin membrane by a shell (recorded with the truth). Written at the
+    # skin's 2 mm, FEBio's initialisation of that shell domain stops with "negative jacobian"
+    # on small subjects (slab; torso seed 3, prone); written 100x thinner (the writer's
+    # default) seed 3's prone truth converges and its supine stops at load 0.06 with negative
+    # Jacobians (the error names the position and FEBio's message)
     "skin": ({}, {"skin": {"E": 4.0, "thickness": 2.0}}),
     "fascia": ({}, {"fascia": {"E": 120.0, "thickness": 0.1}}),
     "ligaments": ({}, {"ligaments": {"E": 100.0}}),
