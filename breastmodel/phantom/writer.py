@@ -71,7 +71,41 @@ def _deformed(material: np.ndarray, u: Callable[[np.ndarray], np.ndarray]) -> np
         if np.max(np.abs(x_new - x)) < 1e-8:
             return x_new
         x = x_new
-    raise RuntimeError("phantom: deformation is not invertible near a marker or landmark")
+    return _deformed_newton(X, u, x)
+
+
+def _deformed_newton(X: np.ndarray, u: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
+                     *, h: float = 1e-4) -> np.ndarray:
+    """x = X + u(x) by Newton's method from ``x`` (1, 3), with u's gradient by central
+    differences (step ``h`` mm) and a halving line search on |x - X - u(x)|: where |grad u|
+    >= 1 (a soft breast's large prone sag) the plain fixed point cycles; Newton does not."""
+    def residual(y):
+        return y - X - u(y)
+
+    r = residual(x)
+    for _ in range(50):
+        if np.max(np.abs(r)) < 1e-8:
+            return x
+        pts = np.concatenate([x + h * np.eye(3), x - h * np.eye(3)])
+        du = u(pts)
+        J = np.eye(3) - (du[:3] - du[3:]).T / (2.0 * h)
+        try:
+            step = -np.linalg.solve(J, r[0])
+        except np.linalg.LinAlgError:
+            break
+        for _ in range(30):
+            x_new = x + step[None]
+            r_new = residual(x_new)
+            if np.linalg.norm(r_new) < np.linalg.norm(r):
+                x, r = x_new, r_new
+                break
+            step = 0.5 * step
+        else:
+            break
+    if np.max(np.abs(r)) < 1e-8:
+        return x
+    raise RuntimeError("phantom: deformation is not invertible near a marker or landmark "
+                       f"(|x - X - u(x)| = {np.max(np.abs(r)):.2g} mm at X = {X[0].round(2)})")
 
 
 def _stream(seed: int, position: str, purpose: int) -> np.random.Generator:

@@ -303,3 +303,19 @@ def test_full_size_default_phantom(tmp_path):
     fat = ndimage.binary_erosion(fine == FAT, iterations=1)
     sigma = arr[air].mean() / np.sqrt(np.pi / 2)
     assert arr[fat].mean() / sigma == pytest.approx(20.0, rel=0.10)
+
+
+def test_markers_follow_a_deformation_the_fixed_point_cannot_invert():
+    """x = X + u(x) with |grad u| > 1 (u = -1.5 (x - c): the plain fixed point diverges) is
+    solved by the Newton fallback; the result satisfies the equation and is the exact root."""
+    from breastmodel.phantom.writer import _deformed
+
+    c = np.array([10.0, -20.0, 5.0])
+
+    def u(p):
+        return -1.5 * (np.asarray(p, float) - c)
+
+    X = np.array([3.0, 4.0, -7.0])
+    x = _deformed(X, u)
+    assert np.max(np.abs(x - X - u(x))) < 1e-8
+    assert np.allclose(x[0], (X + 1.5 * c) / 2.5, atol=1e-8)
