@@ -66,19 +66,24 @@ def _deformed(material: np.ndarray, u: Callable[[np.ndarray], np.ndarray]) -> np
     if u is _no_displacement:
         return X
     x = X.copy()
+    best, best_r = X, np.inf
     for _ in range(100):
         x_new = X + u(x)
-        if np.max(np.abs(x_new - x)) < 1e-8:
+        r = float(np.max(np.abs(x_new - x)))
+        if r < 1e-8:
             return x_new
+        if r < best_r:
+            best, best_r = x, r
         x = x_new
-    return _deformed_newton(X, u, x)
+    return _deformed_newton(X, u, best)
 
 
 def _deformed_newton(X: np.ndarray, u: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
                      *, h: float = 1e-4) -> np.ndarray:
-    """x = X + u(x) by Newton's method from ``x`` (1, 3), with u's gradient by central
-    differences (step ``h`` mm) and a halving line search on |x - X - u(x)|: where |grad u|
-    >= 1 (a soft breast's large prone sag) the plain fixed point cycles; Newton does not."""
+    """x = X + u(x) by Newton's method from ``x`` (1, 3; the fixed point's best iterate), with
+    u's gradient by central differences (step ``h`` mm) and a halving line search on
+    |x - X - u(x)|: where |grad u| >= 1 the plain fixed point diverges or cycles, Newton
+    converges wherever u is smooth near the root."""
     def residual(y):
         return y - X - u(y)
 
