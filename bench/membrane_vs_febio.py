@@ -50,25 +50,9 @@ sys.path.insert(0, str(ROOT))
 from breastmodel.febio import find_febio, shared_path, solve_with_febio  # noqa: E402
 from breastmodel.reference import hemisphere_model  # noqa: E402
 from mechanics.effects import membrane  # noqa: E402
-from mechanics.mesh import Mesh  # noqa: E402
-from mechanics.model import build_model  # noqa: E402
 from mechanics.solver import SolverOptions, solve  # noqa: E402
-from meshing.sets import tet_faces  # noqa: E402
 
 SKIN = {"E": 10.0, "thickness": 0.5, "wrinkling": "none"}
-
-
-def skinned(model):
-    """The hemisphere ``model`` with ``SKIN`` on its curved boundary faces."""
-    mesh = model.mesh
-    faces = tet_faces(mesh.tets)[0]
-    curved = faces[~np.all(np.isclose(mesh.nodes[faces, 2], 0.0), axis=1)]
-    m = Mesh(mesh.nodes, mesh.tets, mesh.region, node_sets=dict(mesh.node_sets),
-             face_sets={"skin": curved})
-    mats = {c: {"name": s.name, **s.params} for c, s in model.materials.items()}
-    effects = {"gravity": {"direction": (0, 0, -1), "g": 9.81, "density": 1000.0},
-               "fixed": {"node_set": "base"}, "skin": SKIN}
-    return build_model(m, mats, effects, formulation="standard")
 
 
 def rows_for(size: str, thinnings: list[float], febio, work: Path, threads: int) -> list[dict]:
@@ -78,7 +62,7 @@ def rows_for(size: str, thinnings: list[float], febio, work: Path, threads: int)
         raise SystemExit(f"membrane_vs_febio: hemi_{size}.npz not found under shared/febio")
     bare_model, tip = hemisphere_model(path, formulation="standard")
     bare = solve(bare_model, options=SolverOptions(tol=1e-10)).u
-    model = skinned(bare_model)
+    model, _ = hemisphere_model(path, formulation="standard", skin=SKIN)
     ours = solve(model, options=SolverOptions(tol=1e-10)).u
     scale = float(np.linalg.norm(ours, axis=1).max())
     out = []

@@ -17,7 +17,7 @@ LAWS = {"neo_hookean": {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
 
 
 def hemisphere_model(mesh_path: str | Path, law: str = "neo_hookean", *,
-                     formulation: str = "anp"):
+                     formulation: str = "anp", skin: dict | None = None):
     """The reference on a stored mesh (``hemi_20k.npz``, ``hemi_150k.npz``).
 
     Parameters
@@ -25,6 +25,8 @@ def hemisphere_model(mesh_path: str | Path, law: str = "neo_hookean", *,
     mesh_path : .npz with ``nodes`` (N, 3) mm, ``tets`` (M, 4), ``base``, ``tip``
     law : "neo_hookean" or "gent"
     formulation : "anp" or "standard"
+    skin : keyword table of a ``skin`` effect on the curved face (face set ``skin``); None:
+        no skin
 
     Returns
     -------
@@ -37,9 +39,17 @@ def hemisphere_model(mesh_path: str | Path, law: str = "neo_hookean", *,
     if law not in LAWS:
         raise ValueError(f"hemisphere reference: law must be one of {sorted(LAWS)}, got {law!r}")
     z = np.load(mesh_path)
-    mesh = Mesh(z["nodes"], z["tets"], np.ones(len(z["tets"])), node_sets={"base": z["base"]})
+    faces = {}
+    if skin is not None:
+        from meshing.sets import tet_faces
+
+        boundary = tet_faces(z["tets"])[0]
+        faces["skin"] = boundary[~np.all(np.isclose(z["nodes"][boundary, 2], 0.0), axis=1)]
+    mesh = Mesh(z["nodes"], z["tets"], np.ones(len(z["tets"])), node_sets={"base": z["base"]},
+                face_sets=faces)
     gravity = {"direction": (0, 0, -1), "g": 9.81, "density": 1000.0}
-    model = build_model(mesh, {1: dict(LAWS[law])},
-                        {"gravity": gravity, "fixed": {"node_set": "base"}},
-                        formulation=formulation)
+    effects = {"gravity": gravity, "fixed": {"node_set": "base"}}
+    if skin is not None:
+        effects["skin"] = dict(skin)
+    model = build_model(mesh, {1: dict(LAWS[law])}, effects, formulation=formulation)
     return model, int(z["tip"])
