@@ -70,7 +70,14 @@ from imaging.segment_contrast import (
 )
 from imaging.segment_fat_bright import _fat_bright_regions
 from imaging.segment_fat_suppressed import _fat_suppressed_regions
-from imaging.segment_regions import STAGE, Seed, SegmentationError, _components, _interior_median
+from imaging.segment_regions import (
+    STAGE,
+    Seed,
+    SegmentationError,
+    _components,
+    _interior_median,
+    glands_off_muscle,
+)
 
 __all__ = [
     "BREAST_ML_RANGE", "CONTRASTS", "MAX_COARSE_MM", "MIN_BLOCKS", "MIN_CNR", "STAGE",
@@ -178,11 +185,13 @@ def segment_volume(
     a = sitk.GetArrayFromImage(pre)
     sp = np.asarray(pre.GetSpacing(), float)[::-1]  # (z, y, x)
     vox_mm3 = float(np.prod(sp))
-    order = _contrast_order(a, sp, contrast, notes)
+    order = _contrast_order(a, sp, contrast, notes, direction=pre.GetDirection())
     opts = dict(seeds=seeds, levelset_iterations=levelset_iterations, curvature=curvature,
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
                 muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
+    if not any(s.label == MUSCLE for s in seeds):  # a user's muscle seed has the last word
+        _glands_off(r, a, sp, kind, notes, min_region_mm3=min_region_mm3)
     labels = _label_map(a, pre, r, kind, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
@@ -235,12 +244,13 @@ def _prepare(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options):
     return pre, work, box
 
 
-def _contrast_order(a: np.ndarray, sp: np.ndarray, contrast: str, notes: list) -> list[str]:
+def _contrast_order(a: np.ndarray, sp: np.ndarray, contrast: str, notes: list, *,
+                    direction=None) -> list[str]:
     """The contrasts to try, in order: the declared one, or the detected one then the other
     (a note says what was detected and why)."""
     if contrast != "auto":
         return [contrast]
-    kind, why = detect_contrast(a, sp)
+    kind, why = detect_contrast(a, sp, direction=direction)
     notes.append(f"contrast detected: {kind} (" + ", ".join(
         f"{k} {v:.3g}" if isinstance(v, float) else f"{k}: {v}" for k, v in why.items())
         + ")")
@@ -273,6 +283,23 @@ def _regions(pre, a, sp, order, notes, *, skin_level, opts) -> tuple[str, dict, 
         raise SegmentationError(failed[0][failed[0].index(": ") + 2:])
     raise SegmentationError(f"{STAGE}: {name}: cannot segment with either contrast: "
                             + "; ".join(failed))
+
+
+def _glands_off(r: dict, a: np.ndarray, sp: np.ndarray, kind: str, notes: list, *,
+                min_region_mm3: float) -> None:
+    """Glands the muscle's region took in go back to the breast
+    (:func:`imaging.segment_regions.glands_off_muscle`), in place; with fat suppressed their
+    level is the gland's."""
+    muscle, blobs = glands_off_muscle(r["muscle"], r["body"], r["thorax"], sp,
+                                      min_mm3=min_region_mm3)
+    if not blobs.any():
+        return
+    r["muscle"], r["muscle_start"] = muscle, r["muscle_start"] & ~blobs
+    if kind == "fat_suppressed":
+        r["lv"]["gland"] = float(np.median(a[blobs]))
+    notes.append(f"{float(np.count_nonzero(blobs) * np.prod(sp)) / 1000.0:.1f} ml on the "
+                 "chest wall's front taken off the muscle as gland (blobs thicker than the "
+                 "wall, among breast tissue)")
 
 
 def _label_gland(labels, a, lv, air, kind, *, vox_mm3, min_region_mm3) -> None:

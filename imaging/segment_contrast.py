@@ -17,6 +17,12 @@ MIN_BLOCKS = 8
 #: Contrasts :func:`segment_volume` knows: fat the brightest large tissue (T1/T2-weighted), or
 #: fat suppressed (fat dark, gland/muscle/skin mid-grey to bright).
 CONTRASTS = ("fat_bright", "fat_suppressed")
+#: The breasts' apex: body surface within this distance of the most anterior point, mm.
+APEX_BAND_MM = 10.0
+#: Subcutaneous fat over skin below this ratio reads as fat suppressed. On the validation
+#: suite's 33 scans (bench/segment_suite.py): fat suppressed 0.82 at most, fat bright 1.07 at
+#: least.
+FAT_SUPPRESSED_RATIO = 0.95
 
 
 def air_noise(a: np.ndarray) -> tuple[float, float]:
@@ -37,37 +43,67 @@ def air_noise(a: np.ndarray) -> tuple[float, float]:
     return peak, max(width / 1.1774, 1e-4)
 
 
-def detect_contrast(a: np.ndarray, spacing_zyx: np.ndarray) -> tuple[str, dict]:
-    """Fat-bright or fat-suppressed, from the intensity profile under the body surface.
+def detect_contrast(a: np.ndarray, spacing_zyx: np.ndarray, *,
+                    direction: tuple | None = None) -> tuple[str, dict]:
+    """Fat-bright or fat-suppressed, from the intensity profile under the skin of the breasts.
 
-    The body's outer layer (0-2 grid steps of a 2x-strided copy, i.e. skin and its partial
-    volume) is compared with the layer 3-8 mm deep (subcutaneous tissue, fat where there is
-    any). With fat bright, the tissue under the skin is brighter than the skin's layer (fat
-    is the brightest large tissue); with fat suppressed, the skin's layer is brighter than the
-    dark fat beneath it. The body is what rises 5 noise sigmas above the background.
+    The breasts are the body's most anterior part in every position, and under their skin
+    lies fat in every subject. Along the posterior direction (LPS +y, found from the image's
+    ``direction``) from the body's surface, over the columns whose surface lies within
+    :data:`APEX_BAND_MM` of the most anterior body point, the median profile is read: the
+    skin's peak (the brightest value in the first 3 mm, at least two voxels) and the median
+    of the next 4 mm (the subcutaneous fat; a gland close under the skin reaches into it, so
+    not its minimum). With fat bright the profile rises from
+    the skin to the fat (ratio >= 1: fat is the brightest large tissue); with fat suppressed
+    the bright skin is followed by the dark fat (ratio well below 1). The apex keeps out the
+    surfaces where muscle meets air (a slab's back, the field of view's cuts), which read the
+    same in both contrasts and misled a comparison over the whole surface. The body is what
+    rises 5 noise sigmas above the background.
 
     Returns
     -------
     (str, dict)
-        One of :data:`CONTRASTS` and the numbers that decided it.
+        One of :data:`CONTRASTS` and the numbers that decided it (``skin``, ``fat``, their
+        ``ratio``, the ``columns`` read).
     """
     peak, sigma = air_noise(a)
-    sub = a[::2, ::2, ::2]
-    sp2 = 2.0 * np.asarray(spacing_zyx, float)
-    rough = sub > peak + 5.0 * sigma
+    sp = np.asarray(spacing_zyx, float)
+    rough = a > peak + 5.0 * sigma
     lab, n = ndimage.label(rough)
     if n == 0:
         return "fat_bright", {"reason": "no body above the noise"}
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     body = ndimage.binary_fill_holes(lab == int(sizes.argmax()))
-    depth = ndimage.distance_transform_edt(body, sampling=sp2)
-    step = float(sp2.max())
-    outer = sub[(depth > 0) & (depth <= step)]
-    inner = sub[(depth > step) & (depth <= 3.0 * step)]
-    o, i = float(np.median(outer)), float(np.median(inner))
-    kind = "fat_suppressed" if i < o else "fat_bright"
-    return kind, {"outer_layer": o, "under_layer": i, "air": peak, "air_sigma": sigma}
+    axis, flip = _posterior_axis(direction)
+    body, b = np.moveaxis(body, axis, 0), np.moveaxis(a, axis, 0)
+    if flip:
+        body, b = body[::-1], b[::-1]
+    step = float(sp[axis])
+    has = body.any(axis=0)
+    first = np.argmax(body, axis=0)
+    cols = has & ((first - first[has].min()) * step <= APEX_BAND_MM)
+    n_skin = max(2, int(np.ceil(3.0 / step)))
+    n_fat = max(2, int(np.ceil(4.0 / step)))
+    k = np.arange(n_skin + n_fat)
+    j, i = np.nonzero(cols)
+    depth = first[j, i][:, None] + k[None, :]
+    ok = depth < b.shape[0]
+    prof = np.where(ok, b[np.minimum(depth, b.shape[0] - 1), j[:, None], i[:, None]], np.nan)
+    prof = np.nanmedian(prof, axis=0)
+    skin, fat = float(np.max(prof[:n_skin])), float(np.median(prof[n_skin:]))
+    ratio = fat / skin if skin > 0 else 1.0
+    kind = "fat_suppressed" if ratio < FAT_SUPPRESSED_RATIO else "fat_bright"
+    return kind, {"skin": skin, "fat": fat, "ratio": ratio, "columns": int(j.size),
+                  "air": peak, "air_sigma": sigma}
+
+
+def _posterior_axis(direction) -> tuple[int, bool]:
+    """The array axis (z, y, x order) closest to the posterior direction (LPS +y) and whether
+    it runs anterior (i.e. its index grows towards the front)."""
+    d = np.eye(3) if direction is None else np.asarray(direction, float).reshape(3, 3)
+    i = int(np.argmax(np.abs(d[1])))  # the index axis (x, y, z order) most along y
+    return 2 - i, bool(d[1, i] < 0)
 
 
 def _require_body(air: np.ndarray, name: str) -> None:

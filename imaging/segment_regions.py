@@ -78,6 +78,70 @@ def _muscle_start(mid: np.ndarray, thorax: np.ndarray, spacing_zyx: np.ndarray,
     return tlab == int(tsizes.argmax()), True
 
 
+def glands_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray,
+                      spacing_zyx: np.ndarray, *, min_mm3: float, thickness_factor: float = 1.6,
+                      breast_share: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Take off the muscle the glands that touch it.
+
+    Where a gland meets the chest wall and is as bright as the muscle (fat suppressed) or
+    joins it through the partial volume of its rim, the muscle's region takes the gland in
+    (on the validation suite: 9248 of 9248 gland voxels on one subject). The chest wall is a
+    sheet; a gland is a blob on the sheet's front. So: the sheet's half thickness is the
+    median of the muscle's distance map at its ridge; the parts of the muscle that hold a
+    ball of ``thickness_factor`` times that radius (an opening, by two distance maps) and
+    that lie more than a wall's thickness from the wall's back (thorax interior, air, the
+    field of view's edge), and whose surroundings outside the muscle are breast tissue for
+    at least ``breast_share`` (not a thick stretch of the wall itself), are blobs, taken off
+    with the partial-volume rim the muscle drew round them.
+
+    Returns
+    -------
+    (muscle, blobs)
+        The muscle less the blobs, and the blobs (to be breast tissue; gland when labelled).
+    """
+    sp = np.asarray(spacing_zyx, float)
+    none = np.zeros(muscle.shape, bool)
+    dt = ndimage.distance_transform_edt(muscle, sampling=sp)
+    ridge = (dt > 0) & (dt >= ndimage.maximum_filter(dt, size=3))
+    if not ridge.any():
+        return muscle, none
+    half = float(np.median(dt[ridge]))
+    r = thickness_factor * half
+    core = muscle & (ndimage.distance_transform_edt(dt <= r, sampling=sp) <= r)
+    # under a broad gland the balls reach through the wall: keep what lies beyond a wall's
+    # thickness from the wall's back (thorax interior, air, the field of view's edge)
+    back = np.pad(~muscle & ~(body & ~thorax), 1, constant_values=True)
+    from_back = ndimage.distance_transform_edt(~back, sampling=sp)[1:-1, 1:-1, 1:-1]
+    front = core & (from_back > 2.0 * half)  # in front of the wall
+    lab, n = _components(core & (from_back > 2.0 * half + float(sp.max())))
+    if n == 0:
+        return muscle, none
+    sizes = np.bincount(lab.ravel(), minlength=n + 1) * float(np.prod(sp))
+    breast = body & ~thorax & ~muscle
+    ring = ndimage.binary_dilation(lab > 0, iterations=2) & ~muscle
+    near = ndimage.distance_transform_edt(lab == 0, sampling=sp, return_distances=False,
+                                          return_indices=True)
+    owner = lab[tuple(near)][ring]  # the blob each surrounding voxel belongs to
+    n_ring = np.bincount(owner, minlength=n + 1)
+    n_breast = np.bincount(owner[breast[ring]], minlength=n + 1)
+    keep = (sizes >= min_mm3) & (n_breast >= breast_share * np.maximum(n_ring, 1))
+    keep[0] = False
+    if not keep.any():
+        return muscle, none
+    flab = _components(front)[0]
+    hit = np.zeros(flab.max() + 1, bool)
+    hit[np.unique(flab[keep[lab]])] = True
+    hit[0] = False
+    blobs = hit[flab]
+    rest = muscle & ~blobs  # the rim: what of the rest near a blob is thinner than the sheet
+    rim_r = 0.5 * half
+    thin = ~(ndimage.distance_transform_edt(
+        ~(ndimage.distance_transform_edt(rest, sampling=sp) > rim_r), sampling=sp) <= rim_r)
+    around = ndimage.distance_transform_edt(~blobs, sampling=sp) <= r + 2.0 * float(sp.max())
+    blobs |= rest & thin & around
+    return muscle & ~blobs, blobs
+
+
 def _markers(pre: sitk.Image, a: np.ndarray, body: np.ndarray, sp: np.ndarray,
              marker_diameter_mm: float) -> tuple[np.ndarray, np.ndarray]:
     """Skin markers: bright blobs outside the (opened) body; returns their centres (K, 3) mm

@@ -1,0 +1,101 @@
+"""The segmentation on every scan of the validation suite: contrast detected against the
+truth's, Dice per tissue against the truth's label maps, and wall time (one thread).
+
+The scans are the ones ``bench/validate.py`` made (FEBio-deformed anatomies, the suite's
+fields of view, voxel shapes and contrasts); this script reads them from its work folder::
+
+    .venv/bin/python bench/validate.py --work /data/validation        # makes the subjects
+    .venv/bin/python bench/segment_suite.py --work /data/validation   # this table
+
+Prints a table and writes bench/results/segment_suite.json. Targets (issue 14): Dice >= 0.95
+breast, >= 0.90 muscle, >= 0.80 gland where labelled, on every scan.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+TARGETS = {"breast": 0.95, "muscle": 0.90, "gland": 0.80}
+
+
+def segment_subject(subject: Path) -> list[dict]:
+    """One row per position of ``subject`` (a folder with ``<position>.nii.gz`` and the
+    truth folder ``<subject>_truth`` with ``spec.json`` and ``<position>_labels.nii.gz``)."""
+    from imaging.io import read_volume
+    from imaging.qa import dice
+    from imaging.segment import segment_volume
+
+    truth = subject.parent / f"{subject.name}_truth"
+    spec = json.loads((truth / "spec.json").read_text(encoding="utf-8"))
+    want = "fat_suppressed" if spec["fat_suppressed"] else "fat_bright"
+    rows = []
+    for scan in sorted(subject.glob("*.nii.gz")):
+        pos = scan.name[: -len(".nii.gz")]
+        t0 = time.perf_counter()
+        res = segment_volume(read_volume(scan), gland=True, name=str(scan))
+        wall = time.perf_counter() - t0
+        d = dice(res.labels, read_volume(truth / f"{pos}_labels.nii.gz"))
+        rows.append({"subject": subject.name, "position": pos, "fov": spec["fov"],
+                     "contrast": f"{spec['contrast']}{'-fs' if spec['fat_suppressed'] else ''}",
+                     "truth_contrast": want, "detected": res.contrast,
+                     "dice": {k: round(float(v), 4) for k, v in d.items()},
+                     "wall_s": round(wall, 2), "confident": res.confidence["confident"],
+                     "notes": list(res.notes)})
+    return rows
+
+
+def meets(row: dict) -> bool:
+    return all(not (row["dice"].get(k, float("nan")) < v) for k, v in TARGETS.items())
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work", type=Path, default=ROOT / "bench" / "validation_work",
+                    help="bench/validate.py's work folder (its subjects/ are read)")
+    ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "segment_suite.json")
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args(argv)
+    import SimpleITK as sitk
+
+    sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(args.threads)
+    subjects = sorted(p for p in (args.work / "subjects").glob("*")
+                      if p.is_dir() and not p.name.endswith("_truth")
+                      and (p.parent / f"{p.name}_truth" / "spec.json").exists())
+    if not subjects:
+        print(f"bench/segment_suite.py: no subjects under {args.work / 'subjects'}: run "
+              "bench/validate.py --work with this folder first", file=sys.stderr)
+        return 2
+    rows = []
+    print(f"{'subject':10s} {'position':18s} {'fov':6s} {'contrast':7s} {'detected':15s} "
+          f"{'breast':>6s} {'muscle':>6s} {'gland':>6s} {'s':>5s}  target")
+    for subject in subjects:
+        for r in segment_subject(subject):
+            rows.append(r)
+            d = r["dice"]
+            ok = "detected" if r["detected"] == r["truth_contrast"] else "MISREAD"
+            print(f"{r['subject']:10s} {r['position']:18s} {r['fov']:6s} {r['contrast']:7s} "
+                  f"{r['detected']:15s} {d['breast']:6.3f} {d['muscle']:6.3f} "
+                  f"{d.get('gland', float('nan')):6.3f} {r['wall_s']:5.1f}  "
+                  f"{'met' if meets(r) else 'missed'} ({ok})", flush=True)
+    summary = {"scans": len(rows),
+               "contrast_right": sum(r["detected"] == r["truth_contrast"] for r in rows),
+               "targets_met": sum(meets(r) for r in rows),
+               **{f"{k}_met": sum(not (r["dice"].get(k, float("nan")) < v) for r in rows)
+                  for k, v in TARGETS.items()}}
+    print(json.dumps(summary))
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.json.with_suffix(".tmp")
+    tmp.write_text(json.dumps({"targets": TARGETS, "threads": args.threads,
+                               "summary": summary, "rows": rows}, indent=1), encoding="utf-8")
+    os.replace(tmp, args.json)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
