@@ -6,8 +6,9 @@ anatomy, voxel shape, contrast, SNR and bias) rendered by the renderer ``make_su
 uses, with rigid motion only (no FE truth is needed to score a segmentation; the FEBio-
 deformed scans of ``bench/segment_suite.py`` give the same figures within 0.01).
 
-Before this change the contrast was misread on 4 of the 11 made subjects (seeds 1, 2, 8, 10)
-without a warning, and the muscle took in every gland that touches it (seeds 1, 4, 6, 9, 10).
+Before this change the contrast was misread on 16 of the suite's 33 scans (seeds 1, 2, 6, 8,
+9, 10, 11) without a warning, and the muscle took in every gland that touches it (seeds 1,
+4, 6, 9, 10).
 """
 
 import numpy as np
