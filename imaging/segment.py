@@ -79,6 +79,9 @@ from imaging.segment_regions import (
     glands_off_muscle,
 )
 
+#: Gland and fat levels closer than this fraction of the fat level are one class (no gland).
+GLAND_MIN_CONTRAST = 0.2
+
 __all__ = [
     "BREAST_ML_RANGE", "CONTRASTS", "MAX_COARSE_MM", "MIN_BLOCKS", "MIN_CNR", "STAGE",
     "Seed", "SegmentationError", "SegmentationResult", "air_noise", "breast_volumes_by_side",
@@ -306,13 +309,40 @@ def _label_gland(labels, a, lv, air, kind, *, vox_mm3, min_region_mm3) -> None:
     """Label glandular tissue (3) in place: breast voxels on the gland's side of the
     gland/fat midpoint (brighter than the dark fat when fat is suppressed, darker than fat
     otherwise), in pieces of at least a tenth of ``min_region_mm3``; records the gland's
-    level and threshold in ``lv``."""
-    if kind == "fat_suppressed":  # gland brighter than the (dark) fat
+    level and threshold in ``lv``.
+
+    Both levels come from the breast's interior (two voxels from the air and the muscle:
+    their partial volume lies between the classes), split in two by Otsu's threshold, when
+    the two classes differ by :data:`GLAND_MIN_CONTRAST` of the fat level; otherwise from
+    the gland's level found earlier (or a default) and the fat's. Next to the muscle its
+    partial volume with fat passes for gland: with fat bright (dark muscle) no voxel touching
+    the muscle is gland; with fat suppressed, only those nearer the gland's level than the
+    threshold (a gland may lie on the wall)."""
+    from skimage.filters import threshold_otsu
+
+    breast = labels == BREAST
+    muscle = labels == MUSCLE
+    inner = breast & ~ndimage.binary_dilation(air | muscle, iterations=2)
+    vals = a[::2, ::2, ::2][inner[::2, ::2, ::2]]
+    fs = kind == "fat_suppressed"
+    split = None
+    if vals.size >= 200:
+        t = float(threshold_otsu(vals))
+        lo, hi = float(np.median(vals[vals <= t])), float(np.median(vals[vals > t]))
+        if hi - lo >= GLAND_MIN_CONTRAST * abs(lv["fat"]):
+            split = (hi, lo) if fs else (lo, hi)  # (gland, fat)
+    if split is not None:
+        lv["gland"] = split[0]
+        t_gland = 0.5 * (split[0] + split[1])
+    elif fs:  # gland brighter than the (dark) fat
         t_gland = 0.5 * (lv.setdefault("gland", lv["muscle"]) + lv["fat"])
-        cand = (labels == BREAST) & (a > t_gland)
     else:
         t_gland = 0.5 * (lv.setdefault("gland", 0.6) + lv["fat"])
-        cand = (labels == BREAST) & (a < t_gland)
+    if fs:  # a gland may lie on the wall: next to it, only what is nearer the gland's level
+        rim = ndimage.binary_dilation(muscle) & (a < 0.5 * (lv["gland"] + t_gland))
+        cand = breast & (a > t_gland) & ~rim
+    else:  # the rim of the dark muscle with fat is as dark as gland: not gland
+        cand = breast & (a < t_gland) & ~ndimage.binary_dilation(muscle)
     glab, gn = _components(cand & ~ndimage.binary_dilation(air, iterations=2))
     if gn:
         gs = np.bincount(glab.ravel())
