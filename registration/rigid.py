@@ -99,9 +99,11 @@ def register_rigid(
     max_residual_mm : float
         Fiducial consistency threshold for the landmark initialisation.
     marker_mask_mm : float
-        Radius of balls around the used reference fiducials added to the mask (0: none).
-        The markers sit on stiff zones (sternum, inframammary folds) and pin the directions
-        a smooth chest wall leaves loose (e.g. along the body axis).
+        Radius of balls around the used reference fiducials added to the mask (0: none),
+        for those whose fiducial-only residual is within ``fiducial_error_mm`` (the others
+        moved with the skin: a note names them). The markers sit on stiff zones (sternum,
+        inframammary folds) and pin the directions a smooth chest wall leaves loose (e.g.
+        along the body axis).
     fiducial_error_mm : float
         Fiducial localisation error (FLE) assumed at least, mm, and at least half the
         diagonal of the coarser image's voxel; see :func:`check_registration`.
@@ -132,7 +134,11 @@ def register_rigid(
         log.warning("%s: %s", STAGE, n)
     chest = fixed_mask
     if fixed_mask is not None and fid is not None and marker_mask_mm > 0:
-        fixed_mask = add_balls(fixed_mask, [fixed_points[k] for k in used], marker_mask_mm)
+        pinned = _rigid_markers(fixed, moving, fid, used, fixed_points, moving_points, notes,
+                                fiducial_error_mm=fiducial_error_mm)
+        if pinned:
+            fixed_mask = add_balls(fixed_mask, [fixed_points[k] for k in pinned],
+                                   marker_mask_mm)
     # Either start is close by now (the fiducials, or the moments start after the
     # whole-body pass): the masked refinement runs the finest levels only.
     k = max(1, int(fine_levels))
@@ -156,6 +162,32 @@ def _fiducial_fit(fixed_points, moving_points, notes, *, max_residual_mm):
     )
     notes += more
     return fid, used
+
+
+def _fle(fixed, moving, fiducial_error_mm: float) -> float:
+    """The fiducial localisation error assumed: ``fiducial_error_mm``, and at least half a
+    voxel diagonal of the coarser image (a marker's centre is found to a fraction of a voxel
+    at best)."""
+    voxel = max(max(fixed.GetSpacing()), max(moving.GetSpacing()))
+    return max(float(fiducial_error_mm), 0.5 * np.sqrt(3.0) * voxel)
+
+
+def _rigid_markers(fixed, moving, fid, used, fixed_points, moving_points, notes, *,
+                   fiducial_error_mm) -> list[str]:
+    """The used markers whose fiducial-only residual is within the localisation error: they
+    moved with the others, so the skin under them is as rigid as the chest wall. A marker on
+    skin that the breasts pull along (measured on the validation suite: residuals up to
+    2.4 mm) would tie the refinement to tissue that deforms."""
+    res = fiducial_residuals(fid, {k: fixed_points[k] for k in used},
+                             {k: moving_points[k] for k in used})
+    fle = float(fiducial_error_mm)
+    pinned = [k for k in used if res[k] <= fle]
+    moved = sorted(set(used) - set(pinned))
+    if moved:
+        notes.append("marker(s) " + ", ".join(f"{k} ({res[k]:.2f} mm)" for k in moved)
+                     + f" moved beyond the localisation error ({fle:.2f} mm) against the "
+                     "others: left out of the correlation mask")
+    return pinned
 
 
 def _start(fixed, moving, fid, initial, notes, *, fixed_mask, shrink, smooth_mm, opts):
@@ -185,13 +217,10 @@ def _check(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes, *,
         notes.append("no consistent fiducials to check the registration against: unchecked")
         return {}, "unchecked"
     pts = {k: fixed_points[k] for k in used}
-    # A marker's centre is found to a fraction of a voxel at best: half a voxel
-    # diagonal bounds the localisation error from below on coarse grids.
-    voxel = max(max(fixed.GetSpacing()), max(moving.GetSpacing()))
     checks = check_registration(
         tfm, fid, pts, fiducial_residuals(fid, pts, {k: moving_points[k] for k in used}),
         chest_points=None if chest is None else mask_points(chest),
-        fiducial_error_mm=max(float(fiducial_error_mm), 0.5 * np.sqrt(3.0) * voxel),
+        fiducial_error_mm=_fle(fixed, moving, fiducial_error_mm),
     )
     for w in checks["failures"]:
         log.warning("%s: %s", STAGE, w)
