@@ -8,7 +8,8 @@ fields of view, voxel shapes and contrasts); this script reads them from its wor
     .venv/bin/python bench/segment_suite.py --work /data/validation   # this table
 
 Prints a table and writes bench/results/segment_suite.json. Targets (issue 14): Dice >= 0.95
-breast, >= 0.90 muscle, >= 0.80 gland where labelled, on every scan.
+breast, >= 0.90 muscle, >= 0.80 gland where labelled, on every scan; and a scan that misses
+them is flagged by the segmentation's own confidence (never silently wrong).
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def segment_subject(subject: Path) -> list[dict]:
                      "truth_contrast": want, "detected": res.contrast,
                      "dice": {k: round(float(v), 4) for k, v in d.items()},
                      "wall_s": round(wall, 2), "confident": res.confidence["confident"],
+                     "agreement": {k: round(float(v), 4)
+                                   for k, v in res.confidence["agreement"].items()},
                      "notes": list(res.notes)})
     return rows
 
@@ -73,7 +76,7 @@ def main(argv=None) -> int:
         return 2
     rows = []
     print(f"{'subject':10s} {'position':18s} {'fov':6s} {'contrast':7s} {'detected':15s} "
-          f"{'breast':>6s} {'muscle':>6s} {'gland':>6s} {'s':>5s}  target")
+          f"{'breast':>6s} {'muscle':>6s} {'gland':>6s} {'s':>5s}  target, confidence")
     for subject in subjects:
         for r in segment_subject(subject):
             rows.append(r)
@@ -82,10 +85,14 @@ def main(argv=None) -> int:
             print(f"{r['subject']:10s} {r['position']:18s} {r['fov']:6s} {r['contrast']:7s} "
                   f"{r['detected']:15s} {d['breast']:6.3f} {d['muscle']:6.3f} "
                   f"{d.get('gland', float('nan')):6.3f} {r['wall_s']:5.1f}  "
-                  f"{'met' if meets(r) else 'missed'} ({ok})", flush=True)
+                  f"{'met' if meets(r) else 'missed'} ({ok}), "
+                  f"{'confident' if r['confident'] else 'flagged'}", flush=True)
     summary = {"scans": len(rows),
                "contrast_right": sum(r["detected"] == r["truth_contrast"] for r in rows),
                "targets_met": sum(meets(r) for r in rows),
+               "missed_and_flagged": sum(not meets(r) and not r["confident"] for r in rows),
+               "missed_silently": sum(not meets(r) and r["confident"] for r in rows),
+               "met_but_flagged": sum(meets(r) and not r["confident"] for r in rows),
                **{f"{k}_met": sum(not (r["dice"].get(k, float("nan")) < v) for r in rows)
                   for k, v in TARGETS.items()}}
     print(json.dumps(summary))

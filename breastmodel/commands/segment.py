@@ -25,6 +25,11 @@ Config (TOML, all optional)::
     marker_diameter_mm = 4.0
     contrast = "auto"    # or "fat_bright" (T1/T2-weighted), "fat_suppressed"
     positions = ["supine", "prone"]   # default: all
+    stop_below_agreement = 0.5   # stop when a region's two estimates agree below this
+                                 # (Dice), or the breast volume is implausible; 0: go on
+
+A segmentation that does not hold up stops with an error naming the volume and the reason,
+after its label map and QA picture are written.
 """
 
 from __future__ import annotations
