@@ -193,16 +193,13 @@ def segment_volume(
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
                 muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
-    if not any(s.label == MUSCLE for s in seeds):  # a user's muscle seed has the last word
-        _glands_off(r, a, sp, kind, notes, min_region_mm3=min_region_mm3)
+    _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3)
     labels = _label_map(a, pre, r, kind, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
-    conf = segmentation_confidence(
-        cnr=r["cnr"], body=(r["body_start"], r["body"]),
-        muscle=(r["muscle_start"], r["muscle"]),
-        breast_ml=float(np.count_nonzero((labels == BREAST) | (labels == GLAND)))
-        * vox_mm3 / 1000.0)
+    breast_ml = float(np.count_nonzero((labels == BREAST) | (labels == GLAND))) * vox_mm3 / 1e3
+    conf = segmentation_confidence(cnr=r["cnr"], body=(r["body_start"], r["body"]),
+                                   muscle=(r["muscle_start"], r["muscle"]), breast_ml=breast_ml)
     notes += conf["warnings"]
     return SegmentationResult(out, pre, {k: float(v) for k, v in r["lv"].items()},
                               _midline_x(pre, r["thorax"], r["muscle"]),
@@ -289,10 +286,12 @@ def _regions(pre, a, sp, order, notes, *, skin_level, opts) -> tuple[str, dict, 
 
 
 def _glands_off(r: dict, a: np.ndarray, sp: np.ndarray, kind: str, notes: list, *,
-                min_region_mm3: float) -> None:
+                seeds, min_region_mm3: float) -> None:
     """Glands the muscle's region took in go back to the breast
     (:func:`imaging.segment_regions.glands_off_muscle`), in place; with fat suppressed their
-    level is the gland's."""
+    level is the gland's. A user's muscle seed has the last word: then nothing is taken."""
+    if any(s.label == MUSCLE for s in seeds):
+        return
     muscle, blobs = glands_off_muscle(r["muscle"], r["body"], r["thorax"], sp,
                                       min_mm3=min_region_mm3)
     if not blobs.any():
