@@ -135,7 +135,9 @@ def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_s
         return none
     half = float(np.median(dt[ridge]))
     r = thickness_factor * half
-    core = muscle & (ndimage.distance_transform_edt(dt <= r, sampling=sp) <= r)
+    core = _opening(dt, r, sp)
+    if not core.any():
+        return none
     # under a broad gland the balls reach through the wall: keep what lies beyond a wall's
     # thickness from the wall's back (thorax interior, air, the field of view's edge)
     back = np.pad(~muscle & ~(body & ~thorax), 1, constant_values=True)
@@ -162,12 +164,20 @@ def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_s
     hit[0] = False
     blobs = hit[flab]
     rest = muscle & ~blobs  # the rim: what of the rest near a blob is thinner than the sheet
-    rim_r = 0.5 * half
-    thin = ~(ndimage.distance_transform_edt(
-        ~(ndimage.distance_transform_edt(rest, sampling=sp) > rim_r), sampling=sp) <= rim_r)
+    thin = ~_opening(ndimage.distance_transform_edt(rest, sampling=sp), 0.5 * half, sp)
     around = ndimage.distance_transform_edt(~blobs, sampling=sp) <= r + 2.0 * float(sp.max())
     blobs |= rest & thin & around
     return blobs
+
+
+def _opening(dt: np.ndarray, radius: float, sp: np.ndarray) -> np.ndarray:
+    """Morphological opening by a ball of ``radius`` mm of the region whose distance map is
+    ``dt``: the voxels within ``radius`` of one deeper than ``radius`` (none if none is; a
+    distance map of an array without a zero is not defined)."""
+    deep = dt > radius
+    if not deep.any():
+        return np.zeros(dt.shape, bool)
+    return (dt > 0) & (ndimage.distance_transform_edt(~deep, sampling=sp) <= radius)
 
 
 def _markers(pre: sitk.Image, a: np.ndarray, body: np.ndarray, sp: np.ndarray,

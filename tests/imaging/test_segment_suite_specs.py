@@ -87,3 +87,15 @@ def test_gland_meets_its_target_on_t2_torso_subjects(seed, tmp_path):
     d = dice(res.labels, truth)
     assert d["gland"] >= 0.80, d
     assert d["breast"] >= 0.95 and d["muscle"] >= 0.90, d
+
+
+def test_glands_off_a_thin_wall_alone_takes_nothing():
+    # no voxel deeper than the ball: the opening is empty (a distance map of an array with
+    # no zero is undefined, and once marked the whole wall as a blob's core)
+    sp = np.ones(3)
+    z, y, x = np.mgrid[:20, :40, :40]
+    wall = (y >= 20) & (y < 23)
+    body = y >= 5
+    thorax = body & (y >= 23)
+    kept, blobs = glands_off_muscle(wall, body, thorax, sp, min_mm3=10.0)
+    assert not blobs.any() and (kept == wall).all()
