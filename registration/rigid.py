@@ -134,7 +134,7 @@ def register_rigid(
         log.warning("%s: %s", STAGE, n)
     chest = fixed_mask
     if fixed_mask is not None and fid is not None and marker_mask_mm > 0:
-        pinned = _rigid_markers(fixed, moving, fid, used, fixed_points, moving_points, notes,
+        pinned = _rigid_markers(fid, used, fixed_points, moving_points, notes,
                                 fiducial_error_mm=fiducial_error_mm)
         if pinned:
             fixed_mask = add_balls(fixed_mask, [fixed_points[k] for k in pinned],
@@ -172,12 +172,13 @@ def _fle(fixed, moving, fiducial_error_mm: float) -> float:
     return max(float(fiducial_error_mm), 0.5 * np.sqrt(3.0) * voxel)
 
 
-def _rigid_markers(fixed, moving, fid, used, fixed_points, moving_points, notes, *,
+def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
                    fiducial_error_mm) -> list[str]:
-    """The used markers whose fiducial-only residual is within the localisation error: they
+    """The used markers whose fiducial-only residual is within ``fiducial_error_mm``: they
     moved with the others, so the skin under them is as rigid as the chest wall. A marker on
     skin that the breasts pull along (measured on the validation suite: residuals up to
-    2.4 mm) would tie the refinement to tissue that deforms."""
+    2.4 mm) would tie the refinement to tissue that deforms. (With the voxel floor of
+    :func:`_fle` instead, the suite's figures were the same.)"""
     res = fiducial_residuals(fid, {k: fixed_points[k] for k in used},
                              {k: moving_points[k] for k in used})
     fle = float(fiducial_error_mm)
