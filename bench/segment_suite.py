@@ -53,8 +53,13 @@ def segment_subject(subject: Path) -> list[dict]:
     return rows
 
 
+def _met(row: dict, tissue: str, bound: float) -> bool:
+    """The tissue's Dice meets its bound, or the tissue is not labelled (no figure)."""
+    return not row["dice"].get(tissue, float("nan")) < bound
+
+
 def meets(row: dict) -> bool:
-    return all(not (row["dice"].get(k, float("nan")) < v) for k, v in TARGETS.items())
+    return all(_met(row, k, v) for k, v in TARGETS.items())
 
 
 def main(argv=None) -> int:
@@ -93,8 +98,7 @@ def main(argv=None) -> int:
                "missed_and_flagged": sum(not meets(r) and not r["confident"] for r in rows),
                "missed_silently": sum(not meets(r) and r["confident"] for r in rows),
                "met_but_flagged": sum(meets(r) and not r["confident"] for r in rows),
-               **{f"{k}_met": sum(not (r["dice"].get(k, float("nan")) < v) for r in rows)
-                  for k, v in TARGETS.items()}}
+               **{f"{k}_met": sum(_met(r, k, v) for r in rows) for k, v in TARGETS.items()}}
     print(json.dumps(summary))
     args.json.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.json.with_suffix(".tmp")
