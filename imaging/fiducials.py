@@ -28,8 +28,16 @@ def _index_to_physical(img: sitk.Image, ijk: np.ndarray) -> np.ndarray:
     return np.asarray(img.GetOrigin()) + (ijk * np.asarray(img.GetSpacing())) @ d.T
 
 
+#: A component of the opened foreground this many times a marker's volume or larger is
+#: body, not a marker: the opening also cuts a thin muscle slab meeting air, which leaves
+#: each breast a component of its own (and took every bright blob in all but the largest
+#: for a marker).
+BODY_PART_MARKER_VOLUMES = 50.0
+
+
 def body_without_markers(fg: np.ndarray, *, spacing: np.ndarray, diameter_mm: float) -> np.ndarray:
-    """Largest foreground component after an opening that erases marker-sized blobs.
+    """The foreground after an opening that erases marker-sized blobs: its components of at
+    least :data:`BODY_PART_MARKER_VOLUMES` marker volumes (always the largest).
 
     Parameters
     ----------
@@ -54,8 +62,12 @@ def body_without_markers(fg: np.ndarray, *, spacing: np.ndarray, diameter_mm: fl
     m = sitk.GetImageFromArray(fg[sl].astype(np.uint8))
     m.SetSpacing(tuple(float(s) for s in spacing))
     opened = sitk.BinaryMorphologicalOpening(m, rad, sitk.sitkBall, 0, 1)
-    cc = sitk.RelabelComponent(sitk.ConnectedComponent(opened), sortByObjectSize=True)
-    out[sl] = sitk.GetArrayViewFromImage(cc) == 1
+    cc = sitk.GetArrayFromImage(sitk.RelabelComponent(sitk.ConnectedComponent(opened),
+                                                      sortByObjectSize=True))
+    sizes = np.bincount(cc.ravel()) * float(np.prod(spacing))
+    big = sizes >= BODY_PART_MARKER_VOLUMES * np.pi / 6.0 * diameter_mm ** 3
+    big[0], big[1:2] = False, True
+    out[sl] = big[cc]
     return out
 
 

@@ -63,6 +63,7 @@ from imaging.segment_contrast import (
     CONTRASTS,
     MIN_BLOCKS,
     MIN_CNR,
+    _posterior_axis,
     air_noise,
     coherent_blocks,
     contrast_to_noise,
@@ -193,7 +194,8 @@ def segment_volume(
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
                 muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
-    _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3)
+    _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3,
+                posterior=_posterior_axis(pre.GetDirection()))
     labels = _label_map(a, pre, r, kind, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
@@ -286,14 +288,14 @@ def _regions(pre, a, sp, order, notes, *, skin_level, opts) -> tuple[str, dict, 
 
 
 def _glands_off(r: dict, a: np.ndarray, sp: np.ndarray, kind: str, notes: list, *,
-                seeds, min_region_mm3: float) -> None:
+                seeds, min_region_mm3: float, posterior: tuple[int, bool]) -> None:
     """Glands the muscle's region took in go back to the breast
     (:func:`imaging.segment_regions.glands_off_muscle`), in place; with fat suppressed their
     level is the gland's. A user's muscle seed has the last word: then nothing is taken."""
     if any(s.label == MUSCLE for s in seeds):
         return
     muscle, blobs = glands_off_muscle(r["muscle"], r["body"], r["thorax"], sp,
-                                      min_mm3=min_region_mm3)
+                                      min_mm3=min_region_mm3, posterior=posterior)
     if not blobs.any():
         return
     r["muscle"], r["muscle_start"] = muscle, r["muscle_start"] & ~blobs

@@ -94,9 +94,11 @@ def _levels_and_dark_regions(a, sp, *, skin_level, min_region_mm3, muscle_min_mm
         bright = (a > t_bright) & ~air
         lv["fat"] = _interior_median(a, bright, lv["fat"])
         mid = ~air & ~thorax & ~bright
-        muscle0 = _muscle_start(mid, thorax, sp, muscle_min_mm)[0]
-        if muscle0.any():
+        muscle0 = _muscle_start(mid, thorax, sp, muscle_min_mm, outside=air)[0]
+        if muscle0.any() and thorax.any():
             lv["muscle"] = _interior_median(a, muscle0, lv["muscle"])
+        elif muscle0.any():  # a wall meeting air is thin: its interior is the glands on it
+            lv["muscle"] = float(np.median(a[muscle0]))
         if not thorax.any():  # muscle meets air: the dark side of the muscle is air
             lv["thorax"] = lv["air"]
         t_dark, t_bright = _thresholds(lv)
@@ -184,9 +186,10 @@ def _refine_muscle(pre, a, sp, body, thorax, marker_mask, notes, *, seeds, t_dar
     # the muscle meets air, the skin of the breasts meets the muscle at their base.
     mid = body & ~thorax & (a <= t_bright)
     mlab, mn = _components(mid)
-    muscle, largest = _muscle_start(mid, thorax, sp, muscle_min_mm)
+    muscle, largest = _muscle_start(mid, thorax, sp, muscle_min_mm, outside=~body)
     if largest:
-        notes.append("no thorax interior found; muscle = largest thick mid-intensity region")
+        notes.append("no thorax interior found; muscle = largest thick mid-intensity region "
+                     "(meeting air where one does)")
 
     # Seeds: reassign the connected region (of its intensity class) that holds each seed.
     muscle, thorax = _apply_seeds(

@@ -76,6 +76,7 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
     if not muscle.any():
         raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
                                 "active contour (fat-suppressed contrast)")
+    muscle, air, body = _muscle_air_edge(a, muscle, air, body, marker_mask, lv)
     thorax &= ~muscle
     cnr = contrast_to_noise(a, air, {"air": lv["air"], "fat": max(lv["muscle"], 1.0)})
     _require_cnr(cnr, name)
@@ -159,10 +160,10 @@ def _muscle_start_bright(pre, a, sp, body, thorax, t_mid, notes, *, seeds, muscl
     """Step 3's start: the thick bright parts touching the thorax interior (else the largest
     thick bright part), after the user's seeds. Returns (muscle, thorax)."""
     bright = body & ~thorax & (a >= t_mid)
-    muscle, largest = _muscle_start(bright, thorax, sp, muscle_min_mm)
+    muscle, largest = _muscle_start(bright, thorax, sp, muscle_min_mm, outside=~body)
     if largest:
         notes.append("no thorax interior found; muscle = largest thick bright region "
-                     "(fat-suppressed contrast)")
+                     "(meeting air where one does; fat-suppressed contrast)")
     mlab = _components(bright)[0]
     muscle, thorax = _apply_seeds(seeds, pre, mlab, thorax, muscle, notes, name,
                                   lambda m: body & ~thorax & ~m & (a < t_mid))
@@ -198,6 +199,22 @@ def _refine_air(pre, a, sp, air, air_level, *, t_air, marker_diameter_mm, ls, na
     markers_mm, marker_mask = _markers(pre, a, body, sp, marker_diameter_mm)
     body &= ~marker_mask
     return air, body, markers_mm, marker_mask
+
+
+def _muscle_air_edge(a, muscle, air, body, marker_mask, lv):
+    """Where the muscle meets air (a slab's back, its front between the breasts), the
+    voxels between the two (touching both) are muscle above the midpoint of the muscle's
+    and the air's levels, else air. A half-muscle, half-air voxel is as dark as fat when fat
+    is suppressed, so the muscle's contour (at the muscle-fat midpoint) leaves it to the
+    breast, and the air's (below the fat) to the body. Returns (muscle, air, body)."""
+    edge = (ndimage.binary_dilation(muscle) & ndimage.binary_dilation(air)
+            & ~muscle & ~marker_mask)
+    if not edge.any():
+        return muscle, air, body
+    solid = a >= 0.5 * (lv["muscle"] + lv["air"])
+    muscle = muscle | (edge & solid)
+    air = (air & ~(edge & solid)) | (edge & ~solid)
+    return muscle, air, body & ~air
 
 
 def _surface_partial_volume(a: np.ndarray, body: np.ndarray, air_level: float) -> np.ndarray:

@@ -61,11 +61,16 @@ def _touching(lab: np.ndarray, n: int, region: np.ndarray) -> np.ndarray:
 
 
 def _muscle_start(mid: np.ndarray, thorax: np.ndarray, spacing_zyx: np.ndarray,
-                  min_mm: float) -> tuple[np.ndarray, bool]:
-    """The chest wall's start: the thick parts (opening by a ball of ``min_mm / 2``) of the
-    mid-intensity layer that touch the thorax interior, else the largest thick part.
-    Returns the mask and whether it is the largest-part fallback."""
-    thick = ndimage.binary_opening(mid, structure=_ball(min_mm / 2, spacing_zyx))
+                  min_mm: float, outside: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
+    """The chest wall's start: the thick parts (opening by a ball of ``min_mm / 2``, and of
+    at least one voxel's size in every direction) of the mid-intensity layer that touch the
+    thorax interior; else the largest thick part that touches ``outside`` (the air: a muscle
+    meeting air; a gland as thick lies among fat), else the largest thick part. Returns the
+    mask and whether it is a fallback."""
+    # a layer one voxel thick along an axis is at the resolution (skin seen edge-on in thick
+    # slices): the ball is at least a voxel's size in every direction
+    r = max(min_mm / 2, float(np.max(spacing_zyx)))
+    thick = _opening(ndimage.distance_transform_edt(mid, sampling=spacing_zyx), r, spacing_zyx)
     tlab, tn = _components(thick)
     if thorax.any():
         muscle = _touching(tlab, tn, thorax)[tlab]
@@ -75,6 +80,10 @@ def _muscle_start(mid: np.ndarray, thorax: np.ndarray, spacing_zyx: np.ndarray,
         return np.zeros(mid.shape, bool), True
     tsizes = np.bincount(tlab.ravel())
     tsizes[0] = 0
+    if outside is not None and outside.any():
+        meets = _touching(tlab, tn, outside)
+        if meets.any():
+            tsizes[~meets] = 0
     return tlab == int(tsizes.argmax()), True
 
 
@@ -87,7 +96,8 @@ GLAND_FINE_MAX_VOXELS = 4_000_000
 
 def glands_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray,
                       spacing_zyx: np.ndarray, *, min_mm3: float, thickness_factor: float = 1.6,
-                      breast_share: float = 0.8, grid_mm: float = 2.0
+                      breast_share: float = 0.8, grid_mm: float = 2.0,
+                      posterior: tuple[int, bool] = (1, False)
                       ) -> tuple[np.ndarray, np.ndarray]:
     """Take off the muscle the glands that touch it (on a volume of more than
     :data:`GLAND_FINE_MAX_VOXELS`, found on a grid of about ``grid_mm``: every k-th voxel
@@ -115,18 +125,21 @@ def glands_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray,
     if (k > 1).any() and muscle.size > GLAND_FINE_MAX_VOXELS:  # seconds per distance map
         sl = tuple(slice(None, None, int(j)) for j in k)
         coarse = _glands_off(muscle[sl], body[sl], thorax[sl], sp * k, min_mm3=min_mm3,
-                             thickness_factor=thickness_factor, breast_share=breast_share)
+                             thickness_factor=thickness_factor, breast_share=breast_share,
+                             posterior=posterior)
         blobs = coarse
         for axis, j in enumerate(k):
             blobs = np.repeat(blobs, j, axis=axis)
         blobs = blobs[: muscle.shape[0], : muscle.shape[1], : muscle.shape[2]] & muscle
         return muscle & ~blobs, blobs
     blobs = _glands_off(muscle, body, thorax, sp, min_mm3=min_mm3,
-                        thickness_factor=thickness_factor, breast_share=breast_share)
+                        thickness_factor=thickness_factor, breast_share=breast_share,
+                        posterior=posterior)
     return muscle & ~blobs, blobs
 
 
-def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_share):
+def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_share,
+                posterior=(1, False)):
     """:func:`glands_off_muscle` on one grid; returns the blobs."""
     none = np.zeros(muscle.shape, bool)
     dt = ndimage.distance_transform_edt(muscle, sampling=sp)
@@ -167,7 +180,35 @@ def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_s
     thin = ~_opening(ndimage.distance_transform_edt(rest, sampling=sp), 0.5 * half, sp)
     around = ndimage.distance_transform_edt(~blobs, sampling=sp) <= r + 2.0 * float(sp.max())
     blobs |= rest & thin & around
-    return blobs
+    # and what of the rest near a blob lies beyond a wall's thickness from the wall's back
+    # counted along the posterior axis (a gland that reaches the skin is near the air in
+    # front of it, which is not the wall's back), joined to the blob
+    wall = _wall_along(muscle, back[1:-1, 1:-1, 1:-1], sp, posterior,
+                       2.0 * half + float(sp.max()))
+    glab = _components(muscle & ~wall & around | blobs)[0]
+    return np.isin(glab, np.unique(glab[blobs])) & (glab > 0)
+
+
+def _wall_along(muscle, back, sp, posterior, depth_mm):
+    """The muscle's voxels within ``depth_mm`` of the wall's back along the posterior axis
+    (``posterior`` = (array axis, index grows anterior)): those whose run of muscle voxels
+    toward the back starts at ``back`` (or the field of view's edge) no more than
+    ``depth_mm`` away."""
+    axis, anterior = posterior
+    m = np.moveaxis(muscle, axis, 0)
+    b = np.moveaxis(back, axis, 0)
+    if not anterior:  # make the index grow from the back to the front
+        m, b = m[::-1], b[::-1]
+    n = m.shape[0]
+    idx = np.arange(n).reshape((n,) + (1,) * (m.ndim - 1))
+    starts = m & ~np.concatenate([np.zeros((1,) + m.shape[1:], bool), m[:-1]])
+    start = np.maximum.accumulate(np.where(starts, idx, -1), axis=0)
+    behind = np.concatenate([np.ones((1,) + m.shape[1:], bool), b[:-1]])  # edge = back
+    from_back = np.take_along_axis(behind, np.maximum(start, 0), axis=0)
+    wall = m & from_back & ((idx - start + 1) * float(sp[axis]) <= depth_mm)
+    if not anterior:
+        wall = wall[::-1]
+    return np.moveaxis(wall, 0, axis)
 
 
 def _opening(dt: np.ndarray, radius: float, sp: np.ndarray) -> np.ndarray:

@@ -8,6 +8,7 @@ import pytest
 from imaging.fiducials import (
     ANATOMICAL_LABELS,
     anatomical_labels,
+    body_without_markers,
     detect_markers,
     find_fiducials,
     label_by_reference,
@@ -59,3 +60,19 @@ def test_anatomical_labels_follow_the_anatomy_under_rotation():
     out = anatomical_labels(np.asarray([moved[names[i]] for i in order]))
     for k in pts:
         assert np.allclose(out[k], moved[k])
+
+
+def test_the_body_without_markers_keeps_every_breast_a_thin_slab_joins():
+    # two breasts (balls of radius 20 mm) joined only by a slab 4 mm thick, which the
+    # marker-erasing opening cuts, and a 4 mm marker on the left one: both breasts are body,
+    # the marker is not (once the largest component alone was the body, and every bright
+    # blob of the other breast passed for a marker)
+    z, y, x = np.mgrid[:50, :50, :130].astype(float)
+    left = (x - 30) ** 2 + (y - 25) ** 2 + (z - 25) ** 2 <= 20 ** 2
+    right = (x - 95) ** 2 + (y - 25) ** 2 + (z - 25) ** 2 <= 21 ** 2
+    slab = (y >= 40) & (y < 44) & (x >= 5) & (x < 125) & (z >= 5) & (z < 45)
+    marker = (x - 30) ** 2 + (y - 3) ** 2 + (z - 25) ** 2 <= 2 ** 2
+    body = body_without_markers(left | right | slab | marker, spacing=np.ones(3),
+                                diameter_mm=4.0)
+    assert body[left & ~slab].mean() > 0.95 and body[right & ~slab].mean() > 0.95
+    assert not body[marker & ~left].any()

@@ -17,7 +17,8 @@ import pytest
 from imaging.io import read_volume
 from imaging.qa import dice
 from imaging.segment import segment_volume
-from imaging.segment_regions import glands_off_muscle
+from imaging.segment_fat_suppressed import _muscle_air_edge
+from imaging.segment_regions import _muscle_start, glands_off_muscle
 
 
 def render_supine(seed: int, root):
@@ -45,15 +46,34 @@ def test_contrast_is_read_right_on_every_suite_spec(seed, tmp_path):
 
 # Measured when written (supine, rendered as here): seed 10, torso T1, gland on the wall:
 # breast / muscle / gland 0.886 / 0.855 / 0.01 before, 0.973 / 0.976 / 0.935 after; seed 4,
-# slab T1 fat suppressed: 0.796 / 0.832 / no gland before, 0.934 / 0.930 / 0.981 after.
-@pytest.mark.parametrize("seed, breast, muscle", [(10, 0.95, 0.90), (4, 0.92, 0.90)])
-def test_a_gland_on_the_chest_wall_is_breast_not_muscle(seed, breast, muscle, tmp_path):
+# slab T1 fat suppressed: 0.796 / 0.832 / no gland before, 0.934 / 0.930 / 0.981 after the
+# glands came off the wall, 0.980 / 0.958 / 0.978 once the muscle's start no longer took the
+# skin seen edge-on in 2 mm slices and the muscle-air edge went by the muscle's level.
+# Slabs fat suppressed, T2, 1 x 1 x 2 mm: seed 6 (a gland touching wall and skin)
+# 0.961 / 0.955 / 0.981 (0.87 / 0.91 before those two rules and the wall counted along the
+# posterior axis), seed 9 0.955 / 0.949 / 0.971 (0.89 / 0.92 before).
+@pytest.mark.parametrize("seed", [10, 4, 6, 9])
+def test_a_gland_on_the_chest_wall_is_breast_not_muscle(seed, tmp_path):
     _, img, truth = render_supine(seed, tmp_path)
     res = segment_volume(img, gland=True, name=f"seed{seed}/supine.nii.gz")
     d = dice(res.labels, truth)
-    assert d["breast"] >= breast and d["muscle"] >= muscle, d
+    assert d["breast"] >= 0.95 and d["muscle"] >= 0.90, d  # issue 14's targets
+    assert d["gland"] >= 0.80, d
     assert d["gland"] >= 0.80, d  # issue 14's gland target
     assert any("taken off the muscle as gland" in n for n in res.notes), res.notes
+
+
+def test_a_t2_fat_bright_slab_keeps_its_wall_and_both_breasts(tmp_path):
+    # seed 5: a muscle slab 6 mm thick meeting air, T2 (muscle 0.25 of fat, glands 0.6),
+    # 1.5 mm voxels. Measured when written (supine, rendered as here): breast / muscle
+    # 0.551 / 0.003 before (the glands joined the wall's start, its level rose to theirs, the
+    # wall went to the air, and the left breast, cut off by the marker search's opening, lost
+    # every bright blob as a "marker"); 0.983 / 0.905 / gland 0.963 after
+    _, img, truth = render_supine(5, tmp_path)
+    res = segment_volume(img, gland=True, name="seed5/supine.nii.gz")
+    d = dice(res.labels, truth)
+    assert d["breast"] >= 0.95 and d["muscle"] >= 0.90 and d["gland"] >= 0.80, d
+    assert res.contrast == "fat_bright"
 
 
 def test_glands_off_muscle_keeps_the_wall_and_its_thick_stretches():
@@ -99,3 +119,54 @@ def test_glands_off_a_thin_wall_alone_takes_nothing():
     thorax = body & (y >= 23)
     kept, blobs = glands_off_muscle(wall, body, thorax, sp, min_mm3=10.0)
     assert not blobs.any() and (kept == wall).all()
+
+
+def test_skin_seen_edge_on_in_thick_slices_cannot_start_the_muscle():
+    # 2 mm slices: a wall 8 mm thick (y), and joined to it a skin sheet one slice thick that
+    # runs in the slice's plane (the top of a breast): 3 voxels and more across in-plane, so
+    # an in-plane ball (what a 1.5 mm ball is on 2 mm slices) held it, and the skin went to
+    # the muscle (on the suite's slabs, 2296 breast voxels of 52k on one scan)
+    sp = np.array([2.0, 1.0, 1.0])
+    z, y, x = np.mgrid[:30, :60, :60]
+    wall = (y >= 40) & (y < 48)
+    sheet = (z == 15) & (y >= 10) & (y < 40) & (x >= 10) & (x < 50)
+    start, largest = _muscle_start(wall | sheet, np.zeros(wall.shape, bool), sp, 3.0)
+    assert largest
+    assert not (start & sheet & (y < 37)).any()  # beyond the ball's reach from the wall
+    assert np.count_nonzero(start & wall) >= 0.95 * np.count_nonzero(wall)
+
+
+def test_the_muscle_air_edge_goes_by_the_muscle_level():
+    # fat suppressed, muscle 0.25, fat 0.1, air 0: a voxel half muscle and half air (0.125)
+    # is as dark as fat; it is muscle above the muscle-air midpoint, air below it
+    a = np.zeros((5, 12, 5), np.float32)
+    a[:, 6:] = 0.25
+    a[:, 5] = [[0.2], [0.14], [0.11], [0.05], [0.2]]  # the edge, voxel by voxel (z)
+    muscle = np.zeros(a.shape, bool)
+    muscle[:, 6:] = True
+    air = np.zeros(a.shape, bool)
+    air[:, :5] = True
+    body = ~air
+    lv = {"muscle": 0.25, "air": 0.0}
+    m, ai, b = _muscle_air_edge(a, muscle, air, body, np.zeros(a.shape, bool), lv)
+    assert m[:, 5].tolist() == [[True] * 5, [True] * 5, [False] * 5, [False] * 5, [True] * 5]
+    assert (ai[:, 5] == ~m[:, 5]).all() and not (b & ai).any()
+    assert m[:, 6:].all() and ai[:, :5].all()
+
+
+def test_a_gland_reaching_the_skin_comes_off_whole():
+    # the wall (y 40..48, thorax behind), a gland on its front that reaches the skin
+    # (y 16..40), the skin in front of it joined (y 14..16), all in the muscle's region as
+    # on a fat-suppressed scan: the gland and its skin are breast, near the air in front
+    # though they are (a distance to any air counted the gland's front as the wall's back)
+    sp = np.ones(3)
+    z, y, x = np.mgrid[:40, :70, :90]
+    wall = (y >= 40) & (y < 48)
+    gland = ((x - 45) ** 2 / 14 ** 2 + (z - 20) ** 2 / 12 ** 2 <= 1) & (y >= 16) & (y < 40)
+    skin = ((x - 45) ** 2 / 16 ** 2 + (z - 20) ** 2 / 14 ** 2 <= 1) & (y >= 14) & (y < 16)
+    body = (y >= 14) & (((x - 45) ** 2 / 32 ** 2 + (z - 20) ** 2 / 19 ** 2 <= 1) | (y >= 40))
+    thorax = body & (y >= 48)
+    kept, blobs = glands_off_muscle(wall | gland | skin, body, thorax, sp, min_mm3=500.0)
+    assert np.count_nonzero(blobs & gland) >= 0.95 * np.count_nonzero(gland)
+    assert np.count_nonzero(blobs & skin) >= 0.9 * np.count_nonzero(skin)
+    assert np.count_nonzero(kept & wall) >= 0.97 * np.count_nonzero(wall)
