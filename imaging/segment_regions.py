@@ -62,7 +62,7 @@ def _touching(lab: np.ndarray, n: int, region: np.ndarray) -> np.ndarray:
 
 def _muscle_start(mid: np.ndarray, thorax: np.ndarray, spacing_zyx: np.ndarray,
                   min_mm: float, outside: np.ndarray | None = None) -> tuple[np.ndarray, bool]:
-    """The chest wall's start: the thick parts (opening by a ball of ``min_mm / 2``, and of
+    """The chest wall's start: the thick parts (opening by a ball of ``min_mm / 2``, and
     at least one voxel's size in every direction) of the mid-intensity layer that touch the
     thorax interior; else the largest thick part that touches ``outside`` (the air: a muscle
     meeting air; a gland as thick lies among fat), else the largest thick part. Returns the
@@ -70,7 +70,7 @@ def _muscle_start(mid: np.ndarray, thorax: np.ndarray, spacing_zyx: np.ndarray,
     # a layer one voxel thick along an axis is at the resolution (skin seen edge-on in thick
     # slices): the ball is at least a voxel's size in every direction
     r = max(min_mm / 2, float(np.max(spacing_zyx)))
-    thick = _opening(ndimage.distance_transform_edt(mid, sampling=spacing_zyx), r, spacing_zyx)
+    thick = ndimage.binary_opening(mid, structure=_ball(r, spacing_zyx))
     tlab, tn = _components(thick)
     if thorax.any():
         muscle = _touching(tlab, tn, thorax)[tlab]
