@@ -113,7 +113,11 @@ def glands_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray,
     that lie more than a wall's thickness from the wall's back (thorax interior, air, the
     field of view's edge), and whose surroundings outside the muscle are breast tissue for
     at least ``breast_share`` (not a thick stretch of the wall itself), are blobs, taken off
-    with the partial-volume rim the muscle drew round them.
+    with the partial-volume rim the muscle drew round them, and with what of the muscle near
+    them lies beyond a wall's thickness from the wall's back counted along the posterior
+    axis ``posterior`` (array axis, whether its index grows anterior: see
+    :func:`imaging.segment_contrast._posterior_axis`; default an LPS volume's y), so that a
+    gland reaching the skin comes off whole.
 
     Returns
     -------
