@@ -31,10 +31,11 @@ Significance. Every added parameter can only lower the squared residual, so each
 charged for its k columns by the Bayesian information criterion
 Delta BIC = n_eff ln(SS_c / SS_0) + k ln(n_eff), with n_eff the effective number of independent
 residuals (neighbouring skin nodes carry nearly the same error; see
-:func:`~breastmodel.diagnosis.residual.effective_n`). Candidates are ranked by Delta BIC. A
-candidate explains "more than the noise" when Delta BIC < -6, it lowers the residual RMS by
-more than a quarter of the noise floor (and 0.02 mm) and removes at least 20 % of the
-baseline's squared residual; when none does, "nothing explains more than the noise" is the
+:func:`~breastmodel.diagnosis.residual.effective_n`). A candidate explains "more than the
+noise" when Delta BIC < -6, it lowers the residual RMS by more than a quarter of the noise
+floor (and 0.02 mm), removes at least 20 % of the baseline's squared residual and, where a
+position is held out, improves it (below); significant candidates rank first, each group by
+Delta BIC. When none is significant, "nothing explains more than the noise" is the
 verdict. Noise floor: with the full-field inverse the reference position is reproduced by
 construction, so its residual is what meshing and segmentation leave; otherwise the
 best-fitting position stands in for it.

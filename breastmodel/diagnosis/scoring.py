@@ -25,13 +25,15 @@ SIGNIFICANT_MIN_MM = 0.02
 #: ... and remove at least this fraction of the baseline's squared residual ...
 SIGNIFICANT_EXPLAINED = 0.2
 #: ... and lower the Bayesian information criterion by more than this ("strong" evidence on
-#: the scale of Kass & Raftery 1995).
+#: the scale of Kass & Raftery 1995); and, where a position is held out and the candidate
+#: acts on the calibration positions, fitted on those alone it must lower the held-out RMS.
 SIGNIFICANT_BIC = 6.0
 
 
 def score_candidates(candidates: Sequence[Candidate], lin: Linearisation, base: Baseline,
                       plan: Plan, geometry: dict) -> tuple[list, list, dict]:
-    """Every candidate re-fitted by the linear model: the ranking (best first, by Delta BIC),
+    """Every candidate re-fitted by the linear model: the ranking (best first: the
+    significant candidates, then the rest, each by Delta BIC),
     the candidates whose evaluation failed, and each one's predicted change of the residual
     {name: (n,) mm}."""
     ranking, failed = [], []
@@ -43,7 +45,7 @@ def score_candidates(candidates: Sequence[Candidate], lin: Linearisation, base: 
             continue
         entry, corrections[c.name] = _score(c, cols, lin, base, plan, geometry)
         ranking.append(entry)
-    ranking.sort(key=lambda r: r["delta_bic"])
+    ranking.sort(key=lambda r: (not r["significant"], r["delta_bic"]))
     return ranking, failed, corrections
 
 
@@ -124,6 +126,9 @@ def _score(c: Candidate, columns, lin: Linearisation, base: Baseline, plan: Plan
                 "rms_after_mm": rms(r_h[lin.slices[p]])} for p in base.held_out}
         entry["held_out_improves"] = bool(all(
             v["rms_after_mm"] < v["rms_before_mm"] for v in entry["held_out"].values()))
+        # a real effect also improves the positions it was not fitted on: one that makes
+        # them worse is not significant, whatever it explains where it was fitted
+        entry["significant"] = entry["significant"] and entry["held_out_improves"]
     if c.measurement == "rigid":
         entry["transform"] = rigid_transform(z_c, geometry[c.acts_on[0]]["y"])
     return entry, r_c - base.r_base

@@ -104,5 +104,11 @@ def test_a_segmentation_offset_is_named(tmp_path):
     assert "offset by" in d["verdict"] and "outwards" in d["verdict"]
     # the offset acts on the calibration positions, so it is tested on the held-out one
     assert best["held_out_improves"]
+    # no candidate that makes the held-out position worse is significant, and the
+    # significant ones rank first
+    assert not [r["name"] for r in d["ranking"]
+                if r["significant"] and r.get("held_out_improves") is False]
+    flags = [r["significant"] for r in d["ranking"]]
+    assert flags == sorted(flags, reverse=True)
     worst = max(d["baseline"]["mhd_mm"].values())
     assert max(best["verified"]["mhd_mm"].values()) <= 0.5 * worst
