@@ -76,7 +76,8 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
     if not muscle.any():
         raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
                                 "active contour (fat-suppressed contrast)")
-    muscle, air, body = _muscle_air_edge(a, muscle, air, body, marker_mask, lv)
+    muscle, air = _muscle_air_edge(a, muscle, air, marker_mask, lv)
+    body &= ~air
     thorax &= ~muscle
     cnr = contrast_to_noise(a, air, {"air": lv["air"], "fat": max(lv["muscle"], 1.0)})
     _require_cnr(cnr, name)
@@ -201,20 +202,18 @@ def _refine_air(pre, a, sp, air, air_level, *, t_air, marker_diameter_mm, ls, na
     return air, body, markers_mm, marker_mask
 
 
-def _muscle_air_edge(a, muscle, air, body, marker_mask, lv):
+def _muscle_air_edge(a, muscle, air, marker_mask, lv):
     """Where the muscle meets air (a slab's back, its front between the breasts), the
     voxels between the two (touching both) are muscle above the midpoint of the muscle's
     and the air's levels, else air. A half-muscle, half-air voxel is as dark as fat when fat
     is suppressed, so the muscle's contour (at the muscle-fat midpoint) leaves it to the
-    breast, and the air's (below the fat) to the body. Returns (muscle, air, body)."""
+    breast, and the air's (below the fat) to the body. Returns (muscle, air)."""
     edge = (ndimage.binary_dilation(muscle) & ndimage.binary_dilation(air)
             & ~muscle & ~marker_mask)
     if not edge.any():
-        return muscle, air, body
-    solid = a >= 0.5 * (lv["muscle"] + lv["air"])
-    muscle = muscle | (edge & solid)
-    air = (air & ~(edge & solid)) | (edge & ~solid)
-    return muscle, air, body & ~air
+        return muscle, air
+    solid = edge & (a >= 0.5 * (lv["muscle"] + lv["air"]))
+    return muscle | solid, (air & ~solid) | (edge & ~solid)
 
 
 def _surface_partial_volume(a: np.ndarray, body: np.ndarray, air_level: float) -> np.ndarray:
