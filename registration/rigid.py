@@ -16,6 +16,7 @@ import numpy as np
 import SimpleITK as sitk
 
 from registration.checks import check_registration, mask_points, predicted_tre
+from registration.directions import blend_loose, loose_directions
 from registration.initialise import _to_euler, landmark_transform, moments_transform
 from registration.masks import add_balls, chest_wall_mask
 from registration.qa import fiducial_residuals
@@ -46,7 +47,8 @@ class RigidResult:
     used_labels : tuple of str
         Fiducial labels that drove the initialisation.
     metric : float
-        Final correlation metric (negative: -1 is perfect).
+        Correlation of the chest-wall refinement (negative: -1 is perfect), before its
+        loose directions were taken from the markers.
     warnings : tuple of str
         Human-readable notes (fallbacks, dropped markers, failed checks).
     status : str
@@ -99,11 +101,14 @@ def register_rigid(
     max_residual_mm : float
         Fiducial consistency threshold for the landmark initialisation.
     marker_mask_mm : float
-        Radius of balls around the used reference fiducials added to the mask (0: none),
-        for those whose fiducial-only residual is within ``fiducial_error_mm`` (the others
-        moved with the skin: a note names them). The markers sit on stiff zones (sternum,
-        inframammary folds) and pin the directions a smooth chest wall leaves loose (e.g.
-        along the body axis).
+        Radius of balls around the used reference fiducials (0: none), for those whose
+        fiducial-only residual is within ``fiducial_error_mm`` (the others moved with the
+        skin: a note names them). Where the chest wall leaves a direction loose (e.g. a
+        torso's body axis, :func:`registration.directions.loose_directions`), a second
+        refinement over the mask and these balls sets it; every other direction stays the
+        chest wall's. Markers sit on skin, which the breasts pull along in a tilted
+        position (on the validation suite a coherent lateral shift of about 1 mm that
+        leaves no residual), so they may not drive the directions the wall pins.
     fiducial_error_mm : float
         Fiducial localisation error (FLE) assumed at least, mm, and at least half the
         diagonal of the coarser image's voxel; see :func:`check_registration`.
@@ -133,17 +138,18 @@ def register_rigid(
     for n in notes:
         log.warning("%s: %s", STAGE, n)
     chest = fixed_mask
-    if fixed_mask is not None and fid is not None and marker_mask_mm > 0:
-        pinned = _rigid_markers(fid, used, fixed_points, moving_points, notes,
-                                fiducial_error_mm=fiducial_error_mm)
-        if pinned:
-            fixed_mask = add_balls(fixed_mask, [fixed_points[k] for k in pinned],
-                                   marker_mask_mm)
     # Either start is close by now (the fiducials, or the moments start after the
     # whole-body pass): the masked refinement runs the finest levels only.
     k = max(1, int(fine_levels))
-    tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=fixed_mask,
-                               shrink=tuple(shrink)[-k:], smooth_mm=tuple(smooth_mm)[-k:], **opts)
+    levels = dict(shrink=tuple(shrink)[-k:], smooth_mm=tuple(smooth_mm)[-k:], **opts)
+    tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=chest, **levels)
+    if chest is not None and fid is not None and marker_mask_mm > 0:
+        pinned = _rigid_markers(fid, used, fixed_points, moving_points, notes,
+                                fiducial_error_mm=fiducial_error_mm)
+        if pinned:
+            tfm = _loose_from_markers(fixed, moving, init, tfm, chest, notes, levels=levels,
+                                      balls=[fixed_points[k] for k in pinned],
+                                      radius_mm=marker_mask_mm)
     res = fiducial_residuals(tfm, fixed_points or {}, moving_points or {})
     checks, status = _check(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes,
                             chest=chest, fiducial_error_mm=fiducial_error_mm)
@@ -189,6 +195,23 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
                      + f" moved beyond the localisation error ({fle:.2f} mm) against the "
                      "others: left out of the correlation mask")
     return pinned
+
+
+def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm):
+    """The chest-wall transform ``wall`` with its loose directions set by a refinement over
+    the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
+    which and by how much); ``wall`` itself where the chest wall pins every direction."""
+    dirs = loose_directions(fixed, chest)
+    if not dirs.loose.any():
+        notes.append("the chest wall pins every rigid direction (weakest sharpness "
+                     f"{dirs.ratios[0]:.3f}): the markers only check the registration")
+        return wall
+    with_balls, _ = refine_rigid(fixed, moving, init, fixed_mask=add_balls(chest, balls,
+                                                                           radius_mm), **levels)
+    out, moved = blend_loose(wall, with_balls, dirs)
+    notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose: set by "
+                 f"the markers' refinement (moved {moved:.2f} mm)")
+    return out
 
 
 def _start(fixed, moving, fid, initial, notes, *, fixed_mask, shrink, smooth_mm, opts):

@@ -16,7 +16,7 @@ Config (TOML, all optional)::
 
     [register]
     max_residual_mm = 3.0      # fiducial consistency threshold
-    marker_mask_mm = 8.0       # balls around the reference markers join the mask
+    marker_mask_mm = 8.0       # balls around the markers set what the chest wall leaves loose
     shrink = [4, 2, 1]
     smooth_mm = [2.0, 1.0, 0.0]
     iterations = 50            # per level (at most)
