@@ -58,3 +58,52 @@ def test_the_blend_takes_only_the_loose_directions():
     np.testing.assert_allclose(transform_to_matrix(same), transform_to_matrix(base),
                                atol=1e-9)
     assert zero < 1e-9
+
+
+def _torso(shift_mm, markers, drag_mm) -> sitk.Image:
+    """A torso-like volume (1 mm voxels): an elliptic body along z, an inner 'thorax' darker
+    than it, and bright marker balls on the body's surface at ``markers``; all shifted by
+    ``shift_mm``, the skin (the body's outline) and the markers by ``drag_mm`` more."""
+    z, y, x = np.mgrid[0:50, -45:46, -60:61].astype(float)
+    sx, sy, sz = shift_mm
+    xb, yb = x - sx, y - sy
+    xs, ys = xb - drag_mm[0], yb - drag_mm[1]
+    a = np.where((xs / 50) ** 2 + (ys / 35) ** 2 <= 1, 1.0, 0.0)
+    a[(xb / 36) ** 2 + ((yb - 4) / 22) ** 2 <= 1] = 0.85
+    for m in markers:
+        c = np.asarray(m, float) + drag_mm + np.asarray(shift_mm)
+        a[(x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2 <= 2.0 ** 2] = 2.0
+    img = sitk.GetImageFromArray(a.astype(np.float32))
+    img.SetOrigin((-60.0, -45.0, 0.0))
+    return sitk.SmoothingRecursiveGaussian(img, 0.7)
+
+
+def test_markers_dragged_by_the_skin_set_only_what_the_wall_leaves_loose():
+    """The chest wall (the thorax's boundary, a cylinder along z) sets x and y; the markers,
+    dragged 1 mm sideways with the skin, may only set z, which the wall leaves loose."""
+    from registration.rigid import register_rigid
+
+    markers = [(-30.0, -28.0, 12.0), (30.0, -28.0, 14.0), (0.0, -35.0, 22.0),
+               (-8.0, -35.0, 36.0)]
+    truth = np.array([1.5, -1.0, 2.5])
+    fixed = _torso((0.0, 0.0, 0.0), markers, np.zeros(3))
+    moving = _torso(truth, markers, np.array([1.0, 0.0, 0.0]))
+    z, y, x = np.mgrid[0:50, -45:46, -60:61].astype(float)
+    ring = np.abs(np.sqrt((x / 36) ** 2 + ((y - 4) / 22) ** 2) - 1.0) <= 0.15
+    ring[:6], ring[-6:] = False, False  # away from the image's ends along z
+    mask = sitk.GetImageFromArray(ring.astype(np.uint8))
+    mask.CopyInformation(fixed)
+    pts = {f"m{i}": np.asarray(p, float) for i, p in enumerate(markers)}
+    # the marker list is off in z by 0.6 mm on average (the balls' image is not)
+    moved = {k: p + truth + [1.0, 0.0, dz] for (k, p), dz in zip(pts.items(), (0.9, 0.9, 0.3, 0.3))}
+    res = register_rigid(fixed, moving, fixed_points=pts, moving_points=moved,
+                         fixed_mask=mask, fiducial_error_mm=1.5)
+    shift = np.asarray(res.transform.TransformPoint((0.0, 0.0, 25.0))) - [0.0, 0.0, 25.0]
+    fid = np.asarray(res.fiducial_transform.TransformPoint((0.0, 0.0, 25.0))) - [0, 0, 25.0]
+    assert abs(fid[0] - truth[0]) > 0.9  # the markers alone carry the drag
+    np.testing.assert_allclose(shift, truth, atol=0.3)
+    wall = register_rigid(fixed, moving, fixed_points=pts, moving_points=moved,
+                          fixed_mask=mask, fiducial_error_mm=1.5, marker_mask_mm=0)
+    loose = np.asarray(wall.transform.TransformPoint((0.0, 0.0, 25.0))) - [0.0, 0.0, 25.0]
+    assert abs(loose[2] - truth[2]) > 0.4  # the wall alone keeps the start's z
+    assert any("loose" in w for w in res.warnings)
