@@ -137,22 +137,19 @@ def register_rigid(
                        shrink=shrink, smooth_mm=smooth_mm, opts=opts)
     for n in notes:
         log.warning("%s: %s", STAGE, n)
-    chest = fixed_mask
-    # Either start is close by now (the fiducials, or the moments start after the
-    # whole-body pass): the masked refinement runs the finest levels only.
+    # The start is close (fiducials, or moments + whole body): refine the finest levels.
     k = max(1, int(fine_levels))
     levels = dict(shrink=tuple(shrink)[-k:], smooth_mm=tuple(smooth_mm)[-k:], **opts)
-    tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=chest, **levels)
-    if chest is not None and fid is not None and marker_mask_mm > 0:
+    tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=fixed_mask, **levels)
+    if fixed_mask is not None and fid is not None and marker_mask_mm > 0:
         pinned = _rigid_markers(fid, used, fixed_points, moving_points, notes,
                                 fiducial_error_mm=fiducial_error_mm)
-        if pinned:
-            tfm = _loose_from_markers(fixed, moving, init, tfm, chest, notes, levels=levels,
-                                      balls=[fixed_points[k] for k in pinned],
-                                      radius_mm=marker_mask_mm)
+        tfm = _loose_from_markers(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
+                                  balls=[fixed_points[k] for k in pinned],
+                                  radius_mm=marker_mask_mm)
     res = fiducial_residuals(tfm, fixed_points or {}, moving_points or {})
     checks, status = _check(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes,
-                            chest=chest, fiducial_error_mm=fiducial_error_mm)
+                            chest=fixed_mask, fiducial_error_mm=fiducial_error_mm)
     return RigidResult(tfm, how, res, used, metric, tuple(notes), status=status,
                        checks=checks, fiducial_transform=fid)
 
@@ -200,7 +197,10 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
 def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm):
     """The chest-wall transform ``wall`` with its loose directions set by a refinement over
     the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
-    which and by how much); ``wall`` itself where the chest wall pins every direction."""
+    which and by how much); ``wall`` itself where the chest wall pins every direction or no
+    marker is rigid enough to use."""
+    if not balls:
+        return wall
     dirs = loose_directions(fixed, chest)
     if not dirs.loose.any():
         notes.append("the chest wall pins every rigid direction (weakest sharpness "
