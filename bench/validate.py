@@ -28,6 +28,10 @@ if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
     sys.path[0] = str(ROOT)
 
 
+def _size(text: str) -> float | str:
+    return "auto" if text == "auto" else float(text)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--subjects", type=int, default=12, help="seeds 0..N-1 (default 12)")
@@ -38,7 +42,8 @@ def main(argv=None) -> int:
     ap.add_argument("--febio", default=None, help="FEBio 4 executable (default $FEBIO, then "
                     "../shared/febio/febio4)")
     ap.add_argument("--arms", default="pipeline,truth_labels")
-    ap.add_argument("--mesh-size", type=float, default=8.0, help="fitted model's tet edge, mm")
+    ap.add_argument("--mesh-size", type=_size, default="auto",
+                    help="fitted model's tet edge, mm, or auto (the pipeline's default)")
     ap.add_argument("--force", action="store_true",
                     help="re-evaluate finished subjects (the pipeline's stage cache under "
                          "WORK/runs is keyed by inputs and settings, not by code: delete it "

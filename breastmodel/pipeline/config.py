@@ -33,12 +33,13 @@ _SOLVER_KEYS = {f.name for f in fields(SolverOptions)}
 FIT_PARAMETER_KEYS = {"min", "max", "step", "values"}
 
 #: The defaults: a Neo-Hookean breast (1 kPa), a stiff muscle layer (10 kPa), fixed chest
-#: wall, the full-field inverse for the stress-free geometry, no fitting.
+#: wall, the mesh sized by the breast ("auto"), the full-field inverse for the stress-free
+#: geometry, no fitting.
 DEFAULTS: dict[str, Any] = {
     "preprocess": {},
     "segment": {},
     "register": {"require_fiducials": True},
-    "mesh": {"size_mm": 8.0, "keep_gland": False, "threads": 1},
+    "mesh": {"size_mm": "auto", "keep_gland": False, "threads": 1},
     "surface": {"edge_mm": 2.0},
     "model": {
         "formulation": "anp",
@@ -113,6 +114,11 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     if sf["method"] not in ("inverse", "paper", "none"):
         raise ConfigError(f"{where} [stress_free] method must be 'inverse', 'paper' or "
                           f"'none', got {sf['method']!r}")
+    size = cfg["mesh"]["size_mm"]
+    if size != "auto" and (isinstance(size, bool) or not isinstance(size, int | float)
+                           or not 0.5 <= size <= 50.0):
+        raise ConfigError(f"{where} [mesh] size_mm must be \"auto\" or an element size in mm "
+                          f"(0.5-50), got {size!r}")
     fit = cfg["fit"]
     if fit["method"] not in ("grid", "optimizer", "least_squares"):
         raise ConfigError(f"{where} [fit] method must be 'grid', 'optimizer' or "

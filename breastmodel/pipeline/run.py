@@ -116,6 +116,7 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
 
         from breastmodel.config import write_json
         from meshing import mesh_labels
+        from meshing.sizing import mesh_size
         from meshing.surface import skin_surface
         from registration.transforms import read_transform, transform_points
 
@@ -123,8 +124,10 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
         ref_labels = sitk.ReadImage(str(reg_dir / "reference_labels.nii.gz"))
         m = cfg["mesh"]
         try:
-            mesh = mesh_labels(ref_labels, size_mm=float(m["size_mm"]),
-                               keep_gland=bool(m["keep_gland"]), threads=int(m["threads"]))
+            size, why = mesh_size(m["size_mm"], ref_labels)
+            log.info("mesh: %g mm (%s)", size, why)
+            mesh = mesh_labels(ref_labels, size_mm=size, keep_gland=bool(m["keep_gland"]),
+                               threads=int(m["threads"]))
         except (ValueError, RuntimeError) as exc:
             raise StageError("mesh", str(exc), reg_dir / "reference_labels.nii.gz") from None
         mesh.save_npz(d / "mesh.npz")
@@ -150,7 +153,8 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
             landmarks[pos] = {k: v.tolist() for k, v in zip(names, p)}
         write_json(d / "problem.json", {"reference": ref, "gravity": gravity,
                                         "landmarks": landmarks,
-                                        "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets})
+                                        "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets,
+                                        "mesh_size_mm": size, "mesh_size": why})
     return fn
 
 
@@ -295,7 +299,8 @@ def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str
     """
     if prep.register_dir is None:
         return {"skipped": "a given problem folder has no label map to remesh"}
-    R, h = prep.runner, float(cfg["mesh"]["size_mm"])
+    meta = json.loads((prep.problem_dir / "problem.json").read_text())
+    R, h = prep.runner, float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
     fine = {**cfg, "mesh": {**cfg["mesh"], "size_mm": h / 2}}
     prob_dir, prob_key = R.stage("problem", {"mesh": fine["mesh"], "surface": cfg["surface"]},
                                  list(prep.problem_inputs),

@@ -31,7 +31,7 @@ def split_positions(positions: Sequence[str], reference: str) -> tuple[list[str]
 
 
 def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], reference: str,
-                 *, mesh_size_mm: float = 8.0, E_start: float = 1.0,
+                 *, mesh_size_mm: float | str = "auto", E_start: float = 1.0,
                  E_muscle: float = 10.0) -> dict:
     """The resolved run config of one arm: the bulk model (Neo-Hookean breast and muscle,
     posterior chest wall fixed), least-squares fit of one breast modulus on the calibration
@@ -42,7 +42,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
     arm : one of :data:`ARMS`
     truth_dir : the subject's truth folder (``<position>_labels.nii.gz``)
     positions, reference : the subject's positions and its reference
-    mesh_size_mm : tet edge of the fitted model, mm
+    mesh_size_mm : tet edge of the fitted model, mm, or "auto" (the pipeline's default)
     E_start : starting breast modulus of the fit, kPa
     E_muscle : muscle modulus, kPa (held fixed)
     """
@@ -53,7 +53,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
     calibrate, held_out = split_positions(positions, reference)
     nh = {"name": "neo_hookean", "nu": 0.49}
     raw: dict[str, Any] = {
-        "mesh": {"size_mm": float(mesh_size_mm)},
+        "mesh": {"size_mm": mesh_size_mm if mesh_size_mm == "auto" else float(mesh_size_mm)},
         "model": {"materials": {"breast_left": {**nh, "E": E_start},
                                 "breast_right": {**nh, "E": E_start},
                                 "muscle": {**nh, "E": E_muscle}},
@@ -68,7 +68,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
 
 
 def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm: str, *,
-            mesh_size_mm: float = 8.0, progress: bool = False) -> dict[str, Any]:
+            mesh_size_mm: float | str = "auto", progress: bool = False) -> dict[str, Any]:
     """Run one arm of one subject and collect its figures; a failing stage is recorded.
 
     Returns
@@ -123,7 +123,7 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
 
 
 def evaluate_subject(subject_dir: str | Path, truth_dir: str | Path, work_dir: str | Path, *,
-                     arms: Iterable[str] = ARMS, mesh_size_mm: float = 8.0,
+                     arms: Iterable[str] = ARMS, mesh_size_mm: float | str = "auto",
                      progress: bool = False) -> dict[str, Any]:
     """Every arm of one subject (see :func:`run_arm`), keyed by arm, with the targets."""
     work_dir = Path(work_dir)
@@ -136,7 +136,7 @@ def evaluate_subject(subject_dir: str | Path, truth_dir: str | Path, work_dir: s
 
 
 def run_suite(names: Sequence[str], make: Callable[[str, Path], tuple[Path, Path, dict]],
-              work: str | Path, *, arms: Iterable[str] = ARMS, mesh_size_mm: float = 8.0,
+              work: str | Path, *, arms: Iterable[str] = ARMS, mesh_size_mm: float | str = "auto",
               force: bool = False, progress: bool = False,
               on_result: Callable[[dict], None] | None = None) -> list[dict[str, Any]]:
     """Make and evaluate each subject; each result is written atomically to

@@ -73,6 +73,8 @@ def test_run_writes_metrics_surfaces_params_report(first_run):
     out, _ = first_run
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics["positions"]) == set(POSITIONS)
+    assert metrics["mesh"]["mesh_size_mm"] == 12.0 and metrics["mesh"]["mesh_size"] == "given"
+    assert metrics["mesh"]["n_tets"] > 0
     for pos, m in metrics["positions"].items():
         for key in ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm"):
             assert math.isfinite(m[key]) and m[key] >= 0, (pos, key)
@@ -277,6 +279,8 @@ def test_segmentation_without_breast_fails_at_segment(phantom, tmp_path):
     ({"fit": {"parameters": {"materials.breast_left.G": {"min": 1}}}}, "min and max"),
     ({"fit": {"parameters": {"effects.skin.E": {"min": 1.0, "max": 20.0}}}}, "no effect"),
     ({"mesh": {"size": 3.0}}, "unknown key"),
+    ({"mesh": {"size_mm": "fine"}}, "auto"),
+    ({"mesh": {"size_mm": -2.0}}, "auto"),
     ({"model": {"effects": {"gravity": {"direction": [0, 0, 1]}}}}, "per position"),
 ])
 def test_bad_config_is_rejected(raw, match):

@@ -7,7 +7,14 @@ from scipy import ndimage as ndi
 
 from meshing.analytic import ellipsoid_labels, torso_labels
 from meshing.labels import tissue_masks
-from meshing.sizing import COARSE, curvature_radius, grid_tets, tissue_size_map
+from meshing.sizing import (
+    AUTO_SIZE_RANGE_MM,
+    COARSE,
+    auto_size_mm,
+    curvature_radius,
+    grid_tets,
+    tissue_size_map,
+)
 from meshing.surface import tissue_surface
 
 
@@ -52,3 +59,35 @@ def test_uniform_when_coarse_is_one():
     masks = tissue_masks(torso_labels(spacing=2.0))
     h = tissue_size_map(masks, 8.0, coarse=1.0)
     assert np.allclose(h, 8.0)
+
+
+def test_auto_size_follows_the_largest_inscribed_radius():
+    """3 elements across the breast's largest inscribed radius, within 4-8 mm; anisotropic
+    voxels are measured in mm."""
+    z, y, x = np.mgrid[-40:41, -40:41, -40:41].astype(float)
+    for radius, want in ((18.0, 6.0), (16.0, 5.0), (35.0, 8.0), (8.0, 4.0)):
+        ball = x ** 2 + y ** 2 + z ** 2 <= radius ** 2
+        size, r = auto_size_mm(ball, (1.0, 1.0, 1.0))
+        assert r == pytest.approx(radius, abs=1.0)
+        assert size == want and AUTO_SIZE_RANGE_MM[0] <= size <= AUTO_SIZE_RANGE_MM[1]
+    ball = x ** 2 + y ** 2 + (0.5 * z) ** 2 <= 16.0 ** 2  # a ball of 16 mm on 0.5 mm slices
+    assert auto_size_mm(ball, (0.5, 1.0, 1.0))[0] == 5.0
+    with pytest.raises(ValueError, match="no breast"):
+        auto_size_mm(np.zeros((4, 4, 4), bool), (1.0, 1.0, 1.0))
+
+
+def test_the_pipeline_sizes_an_auto_mesh_by_the_breast():
+    """``[mesh] size_mm = "auto"`` reads the breast tissue (labels 1 and 3) of the reference
+    label map and says how it chose; a number is taken as given."""
+    import SimpleITK as sitk
+
+    from meshing.sizing import mesh_size
+
+    z, y, x = np.mgrid[-30:31, -30:31, -30:31].astype(float)
+    a = np.where(x ** 2 + y ** 2 + z ** 2 <= 15.0 ** 2, 1, 0).astype(np.uint8)
+    a[(x ** 2 + y ** 2 + z ** 2 <= 5.0 ** 2)] = 3  # a gland inside counts as breast
+    a[:, :, :4] = 2
+    labels = sitk.GetImageFromArray(a)
+    size, why = mesh_size("auto", labels)
+    assert size == 5.0 and why.startswith("auto") and "15." in why
+    assert mesh_size(7, labels) == (7.0, "given")
