@@ -37,9 +37,10 @@ DEPTH_GRADE = 0.5
 #: of the breast tissue, within :data:`AUTO_SIZE_RANGE_MM`. Measured on the validation suite
 #: (half-size subjects, radius 8-18 mm; truth label maps; fitted breast modulus at 8 / 6 / 5
 #: / 4 mm edges): small-000 (radius 12 mm) 0.734 / 0.857 / 1.000 / 1.051 kPa, small-004
-#: (15 mm) 1.19 / 1.28 / 1.35, small-008 (15.3 mm) 0.90 / 0.96 / 1.00, small-003 (18 mm)
+#: (15 mm) 1.19 / 1.28 / 1.35, small-008 (15.3 mm) 0.90 / 0.96 / 1.00 / 1.05, small-003 (18 mm)
 #: 1.04 / 1.08 / 1.10. A coarse mesh is too stiff; once the radius spans 3 elements the
-#: next refinement changes the modulus by 2.6-5 %. An adult breast (radius 25-35 mm) gets
+#: next refinement changes the modulus by 2.6 % (small-003, 6 -> 5 mm) and 5.1 % (small-008,
+#: 5 -> 4 mm). An adult breast (radius 25-35 mm) gets
 #: 8 mm, as before.
 AUTO_ELEMENTS_PER_RADIUS = 3.0
 #: Bounds of the "auto" size, mm: 8 mm is the paper-like size of an adult breast model.
