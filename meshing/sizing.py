@@ -40,8 +40,8 @@ DEPTH_GRADE = 0.5
 #: (15 mm) 1.19 / 1.28 / 1.35, small-008 (15.3 mm) 0.90 / 0.96 / 1.00 / 1.05, small-003 (18 mm)
 #: 1.04 / 1.08 / 1.10. A coarse mesh is too stiff; once the radius spans 3 elements the
 #: next refinement changes the modulus by 2.6 % (small-003, 6 -> 5 mm) and 5.1 % (small-008,
-#: 5 -> 4 mm). An adult breast (radius 25-35 mm) gets
-#: 8 mm, as before.
+#: 5 -> 4 mm). The adult-size family's breasts (radius 19.9-35.4 mm on four drawn
+#: subjects) get 6.5-8 mm.
 AUTO_ELEMENTS_PER_RADIUS = 3.0
 #: Bounds of the "auto" size, mm: 8 mm is the paper-like size of an adult breast model.
 AUTO_SIZE_RANGE_MM = (4.0, 8.0)
