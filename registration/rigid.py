@@ -141,9 +141,9 @@ def register_rigid(
     k = max(1, int(fine_levels))
     levels = dict(shrink=tuple(shrink)[-k:], smooth_mm=tuple(smooth_mm)[-k:], **opts)
     tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=fixed_mask, **levels)
-    if fixed_mask is not None and fid is not None and marker_mask_mm > 0:
-        pinned = _rigid_markers(fid, used, fixed_points, moving_points, notes,
-                                fiducial_error_mm=fiducial_error_mm)
+    if fixed_mask is not None:
+        pinned = [] if fid is None or marker_mask_mm <= 0 else _rigid_markers(
+            fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
         tfm = _loose_from_markers(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
                                   balls=[fixed_points[k] for k in pinned],
                                   radius_mm=marker_mask_mm)
@@ -197,14 +197,19 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
 def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm):
     """The chest-wall transform ``wall`` with its loose directions set by a refinement over
     the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
-    which and by how much); ``wall`` itself where the chest wall pins every direction or no
-    marker is rigid enough to use."""
-    if not balls:
-        return wall
+    which and by how much); ``wall`` itself where the chest wall pins every direction, or
+    where no marker is there to set a loose one (a note says the registration is not
+    determined along it)."""
     dirs = loose_directions(fixed, chest)
     if not dirs.loose.any():
-        notes.append("the chest wall pins every rigid direction (weakest sharpness "
-                     f"{dirs.ratios[0]:.3f}): the markers only check the registration")
+        if balls:
+            notes.append("the chest wall pins every rigid direction (weakest sharpness "
+                         f"{dirs.ratios[0]:.3f}): the markers only check the registration")
+        return wall
+    if not balls:
+        notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose and "
+                     "no rigid marker sets it: the registration is not determined along it "
+                     "(add fiducials on the sternum or check it by eye)")
         return wall
     with_balls, _ = refine_rigid(fixed, moving, init, fixed_mask=add_balls(chest, balls,
                                                                            radius_mm), **levels)

@@ -107,3 +107,23 @@ def test_markers_dragged_by_the_skin_set_only_what_the_wall_leaves_loose():
     loose = np.asarray(wall.transform.TransformPoint((0.0, 0.0, 25.0))) - [0.0, 0.0, 25.0]
     assert abs(loose[2] - truth[2]) > 0.4  # the wall alone keeps the start's z
     assert any("loose" in w for w in res.warnings)
+
+
+def test_without_markers_a_loose_direction_is_named():
+    """No marker to set the cylinder's axis: the registration says it is not determined
+    along it instead of passing in silence."""
+    from registration.rigid import register_rigid
+
+    markers = [(-30.0, -28.0, 12.0)]
+    fixed = _torso((0.0, 0.0, 0.0), markers, np.zeros(3))
+    moving = _torso((1.0, 0.0, 2.0), markers, np.zeros(3))
+    z, y, x = np.mgrid[0:50, -45:46, -60:61].astype(float)
+    ring = np.abs(np.sqrt((x / 36) ** 2 + ((y - 4) / 22) ** 2) - 1.0) <= 0.15
+    ring[:6], ring[-6:] = False, False
+    mask = sitk.GetImageFromArray(ring.astype(np.uint8))
+    mask.CopyInformation(fixed)
+    start = sitk.Euler3DTransform()
+    start.SetTranslation((1.0, 0.0, 2.0))
+    res = register_rigid(fixed, moving, fixed_mask=mask, initial=start)
+    assert res.status == "unchecked"
+    assert any("not determined along it" in w and "translation (" in w for w in res.warnings)
