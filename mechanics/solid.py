@@ -36,6 +36,7 @@ from mechanics.kernels import (
 )
 from mechanics.materials import MATERIALS
 from mechanics.materials.base import IsochoricI1Material
+from mechanics.system import BLOCK  # elements per block handed to a sink
 
 FORMULATIONS = ("anp", "standard")
 _CHUNK = 2048  # elements per block of the stiffness kernel (78 x 2048 doubles: in L2)
@@ -137,9 +138,13 @@ class Solid:
         # isochoric stiffness of psi(I1bar) laws.
         self.dndn = np.einsum("maJ,maJ->am", self.dN[:, PAIR_A], self.dN[:, PAIR_B])
 
-    def evaluate(self, x: np.ndarray, *, tangent: bool = True) -> SolidEval:
+    def evaluate(self, x: np.ndarray, *, tangent: bool = True, sink=None) -> SolidEval:
         """Internal forces (and element stiffness) at current positions x (N, 3) mm.
 
+        With ``sink`` (e.g. :meth:`mechanics.system.Assembly.add_stiffness`), the element
+        stiffness goes to ``sink(elements, KT)`` block by block, KT (78, k) the upper
+        triangles of the elements ``elements`` (a slice or indices, element-last), and
+        ``Kup`` stays None: no mesh-sized array of element matrices is made.
         Raises :class:`InvalidConfiguration` if an element is inverted or a law is undefined.
         """
         x = np.asarray(x, dtype=np.float64)
@@ -149,7 +154,10 @@ class Solid:
         energy += energy_vol
         fe += p_elem[:, None, None] * dv
         force = self.node_sum @ fe.reshape(4 * len(self.V0), 3)
-        Kup = self._element_stiffness(J, g, v, dv, p_elem, co, generic) if tangent else None
+        Kup = None
+        if tangent:
+            Kup = self._element_stiffness(J, g, v, dv, p_elem, co, generic, sink)
+        self._i1_coef = None  # mesh-sized coefficients (f, q: 30 MB at 150k tets)
         return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
 
     def _kinematics(self, x: np.ndarray):
@@ -216,10 +224,11 @@ class Solid:
             energy = float(0.5 * np.dot(self.bulk_elem * V0, (v / V0 - 1.0) ** 2))
         return p_node, p_elem, energy
 
-    def _element_stiffness(self, J, g, v, dv, p_elem, co, generic) -> np.ndarray:
-        """(M, 78) upper triangles of the element stiffness, mN/mm: the closed-form laws'
-        kernel and the volume's geometric stiffness in blocks of elements, then the other
-        laws' stiffness and the volumetric term of geometrically linear elements."""
+    def _element_stiffness(self, J, g, v, dv, p_elem, co, generic, sink=None):
+        """Upper triangles of the element stiffness, mN/mm: the closed-form laws' kernel and
+        the volume's geometric stiffness in blocks of elements, then the other laws'
+        stiffness and the volumetric term of geometrically linear elements. Returns them
+        (M, 78), or hands them to ``sink`` (see :meth:`evaluate`) and returns None."""
         V0, lin = self.V0, self.linear_mask
         M = len(V0)
         any_lin = bool(lin.any())
@@ -232,7 +241,6 @@ class Solid:
         if co is not None:
             c_gg[sel] += co["gg"]
             c_sw[sel] += co["sw"]
-        KT = np.empty((78, M))  # upper triangles, element index last (fast gathers)
         gT = np.ascontiguousarray(g.reshape(M, 12).T)
         fT = qT = None
         if co is not None:
@@ -244,30 +252,44 @@ class Solid:
                 qT, c_qq = np.zeros((12, M)), np.zeros(M)
                 qT[:, sel] = co["q"].reshape(-1, 12).T
                 c_qq[sel] = co["qq"]
-        for s in range(0, M, _CHUNK):  # bounded temporaries, cache reuse
-            e = min(M, s + _CHUNK)
-            gc = gT[:, s:e]
-            h = c_gg[s:e] * gc
-            if fT is not None:
-                fc = fT[:, s:e]
-                h += c_fg[s:e] * fc
-            K = gc[IU] * h[JU]
-            K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
-            if fT is not None:
-                K += fc[IU] * (c_fg[s:e] * gc)[JU]
-                K[DIAG_ROWS] += (c_dd[s:e] * self.dndn[:, s:e])[DIAG_PAIR]
-            if qT is not None:
-                qc = qT[:, s:e]
-                K += qc[IU] * (c_qq[s:e] * qc)[JU]
-            KT[:, s:e] = K
-        Kup = KT.T  # (M, 78) view
-        for idx, K12 in generic:
-            Kup[idx] += K12[:, IU, JU]
+        # Upper triangles, element index last (fast gathers): the whole mesh's, or one
+        # sink block's at a time.
+        out = BLOCK if sink is not None else M
+        KT = np.empty((78, min(out, M)))
+        for b in range(0, M, out):
+            for s in range(b, min(M, b + out), _CHUNK):  # bounded temporaries, cache reuse
+                e = min(M, s + _CHUNK, b + out)
+                gc = gT[:, s:e]
+                h = c_gg[s:e] * gc
+                if fT is not None:
+                    fc = fT[:, s:e]
+                    h += c_fg[s:e] * fc
+                K = gc[IU] * h[JU]
+                K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
+                if fT is not None:
+                    K += fc[IU] * (c_fg[s:e] * gc)[JU]
+                    K[DIAG_ROWS] += (c_dd[s:e] * self.dndn[:, s:e])[DIAG_PAIR]
+                if qT is not None:
+                    qc = qT[:, s:e]
+                    K += qc[IU] * (c_qq[s:e] * qc)[JU]
+                KT[:, s - b:e - b] = K
+            e = min(M, b + out)
+            if not np.isfinite(KT[:, : e - b].sum()):
+                raise InvalidConfiguration("the tangent is not finite")
+            if sink is not None:
+                sink(slice(b, e), KT[:, : e - b])
+        extra = [(idx, K12[:, IU, JU]) for idx, K12 in generic]
         if any_lin and self.formulation == "standard":
-            Kup[lin] += (self.bulk_elem / V0)[lin, None] * upper_outer(dv, dv)[lin]
-        if not np.isfinite(KT.sum()):
-            raise InvalidConfiguration("the tangent is not finite")
-        return Kup
+            extra.append((np.flatnonzero(lin), ((self.bulk_elem / V0)[lin, None]
+                                               * upper_outer(dv, dv)[lin])))
+        for idx, Ke in extra:
+            if not np.isfinite(Ke.sum()):
+                raise InvalidConfiguration("the tangent is not finite")
+            if sink is not None:
+                sink(idx, Ke.T)
+            else:
+                KT[:, idx] += Ke.T
+        return None if sink is not None else KT.T  # (M, 78) view
 
     def _i1_laws(self, F, J, Finv, g, fe, P, tangent: bool) -> float:
         """Closed-form force of the psi(I1bar) laws; stores in ``self._i1_coef`` the

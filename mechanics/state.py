@@ -37,7 +37,8 @@ class State:
     stats : totals of the solve: the phases' times as in ``log``, the counts, ``threads``
         and ``linear_solver`` used, ``unknowns``, ``matrix_nnz_upper``, memory of the
         process (``rss_start_mb``, ``rss_end_mb``, ``peak_rss_mb``: its high-water mark,
-        which includes what ran before the solve in the same process), MB; ``convergence``:
+        which includes what ran before the solve in the same process) and
+        ``linear_solver_mb`` (PARDISO's own account of its factor's memory), MB; ``convergence``:
         the criteria (``residual_tol``, ``dtol``, ``etol``, ``accept_residual``), how many
         steps met each, and the last converged step's norms
     """

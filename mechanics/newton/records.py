@@ -54,6 +54,8 @@ def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
         "refinements": int(getattr(lin, "refinements", 0)),
         "rss_start_mb": rss_start, "rss_end_mb": rss_end,
         "peak_rss_mb": max(_peak_rss_mb(), rss_end),
+        # the sparse direct solver's own account of its memory (PARDISO's), part of the peak
+        "linear_solver_mb": float(getattr(lin, "memory_mb", float("nan"))),
     }
 
 

@@ -169,3 +169,46 @@ def test_thread_count_comes_from_the_setting_the_environment_or_the_cores(monkey
             resolve_threads(None)
     with pytest.raises(ValueError, match="threads"):
         resolve_threads(0)
+
+
+@pytest.mark.parametrize("formulation", ["anp", "standard"])
+def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
+    """Element stiffness handed to the matrix block by block as the solid computes it (the
+    path of meshes above one block; here blocks of 50 tets, int32 maps) gives the matrix of
+    the whole-mesh assembly, bit for bit up to summation order, with a closed-form law
+    (Neo-Hookean) and a generic, geometrically linear one (linear) side by side."""
+    import mechanics.solid as solid_mod
+    import mechanics.system as system_mod
+
+    mesh = hemisphere(60.0, 6)
+    region = np.where(np.arange(mesh.n_tets) % 3 == 0, 2, 1)
+    mats = {1: {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
+            2: {"name": "linear", "E": 3.0, "nu": 0.45}}
+    model = build_model(type(mesh)(mesh.nodes, mesh.tets, region, node_sets=mesh.node_sets),
+                        mats, {"gravity": {"direction": (0, 0, -1)},
+                               "fixed": {"node_set": "fixed"}}, formulation=formulation)
+    solid = _solid(model, mesh.nodes)
+    fixed, _ = _constraints(model, solid.n_nodes, solid.used_nodes)
+    x = mesh.nodes + 0.05 * np.random.default_rng(1).standard_normal(mesh.nodes.shape)
+    pp = -solid.V_node / solid.bulk_node if formulation == "anp" else None
+    whole = ReducedSystem(mesh.tets, solid.n_nodes, ~fixed,
+                          solid.used_nodes if formulation == "anp" else None)
+    ev = solid.evaluate(x)
+    A = whole.assemble(ev.Kup, ev.dv, pp)
+    monkeypatch.setattr(system_mod, "BLOCK", 50)
+    monkeypatch.setattr(solid_mod, "BLOCK", 50)
+    blocks = ReducedSystem(mesh.tets, solid.n_nodes, ~fixed,
+                           solid.used_nodes if formulation == "anp" else None)
+    assert blocks.map_uu.dtype == np.int32 and whole.map_uu.dtype == np.int64
+    asm = blocks.start()
+    seen = []
+    ev2 = solid.evaluate(x, sink=lambda cols, KT: (seen.append(KT.shape[1]),
+                                                   asm.add_stiffness(cols, KT)))
+    B = asm.matrix(ev2.dv, pp)
+    assert ev2.Kup is None and len(seen) > mesh.n_tets // 50
+    # the blocks, then the linear law's elements (and, "standard", their volumetric term)
+    n_lin = int((region == 2).sum())
+    assert sum(seen) == mesh.n_tets + n_lin * (2 if formulation == "standard" else 1)
+    assert np.array_equal(A.indptr, B.indptr) and np.array_equal(A.indices, B.indices)
+    assert np.abs(A.data - B.data).max() <= 1e-12 * np.abs(A.data).max()
+    assert np.array_equal(ev.force, ev2.force)
