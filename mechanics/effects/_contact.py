@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -64,6 +63,10 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
     bary : (S, 3) barycentric coordinates of the closest point (inside or on the edges)
     dist : (S,) distance, mm
     """
+    # imported here: scipy.spatial is 0.2 s of every solver process's start, and only the
+    # contact effects need it
+    from scipy.spatial import cKDTree
+
     xt = x[tri]  # (T, 3, 3)
     k = min(k, len(tri))
     _, cand = cKDTree(xt.mean(axis=1)).query(p, k=k)

@@ -224,4 +224,6 @@ def test_thread_setting_reaches_every_pardiso_call(monkeypatch, threads):
     for k in ("material", "effects", "assembly", "factor", "solve"):
         assert st.stats[f"cpu_{k}"] >= 0.0 and all(f"t_{k}" in e for e in st.log)
     assert st.stats["factorizations"] >= 1 and st.stats["peak_rss_mb"] > 0
+    # PARDISO's own account of its memory, a part of the process's peak
+    assert 0 < st.stats["linear_solver_mb"] < st.stats["peak_rss_mb"]
     assert set(st.stats["cpu_by_effect"]) == {"gravity", "fixed"}
