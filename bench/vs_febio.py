@@ -23,28 +23,43 @@ FEBio build are found, else the figures recorded in ``summary.json`` on a quiet 
 machine, labelled ``recorded``. Our rows are one per configuration (``--configs``): each
 is the default solver with one lever changed, so the table says what each lever buys.
 
-Measured 2026-11-23 on the shared 2-core machine, 2 threads each, 1-minute load average
-10-14 (other workers): wall times are inflated for both codes (FEBio's OpenMP threads more),
-so the decisions below use CPU time and counts; FEBio ran live in the same run. Rows in
-``bench/results/vs_febio.json``.
+Measured 2026-11-26 on the 2-core machine with nothing else running (1-minute load 0.6-2.0,
+the load being these runs), 2 threads each, FEBio live in the same run. Rows in
+``bench/results/vs_febio.json``; ours at 150k NH rerun after the run below with PARDISO's own
+memory figure (15.9 s, 1282 MiB, PARDISO 600 MiB of it).
 
 case        FEBio BFGS (its best)          ours (default)              time ratio   memory
             wall s  CPU s  MiB  fact.      wall s  CPU s  MiB   fact.   wall  CPU
-20k NH       34.1    8.63  123  10           6.1    2.26  232   1       0.18  0.26   1.9x
-20k Gent 5   22.3    6.60  123  10          11.0    2.92  232   1       0.49  0.44   1.9x
-150k NH     555     164    990  10         113     34.0  1461   1       0.20  0.21   1.5x
+20k NH       2.20   3.71   123  10           1.34   1.64   213  1       0.61  0.44   1.7x
+20k Gent 5   1.92   3.33   123  10           1.25   1.54   215  1       0.65  0.46   1.7x
+150k NH     52.2   97.8    990  10          17.5   22.0   1288  1       0.34  0.22   1.3x
+150k Gent 5 48.9   91.5    990  10          15.5   19.2   1303  1       0.32  0.21   1.3x
 
-Accuracy: our solver error (tip against the same solve continued to 1e-13) is 1e-9 mm;
-FEBio BFGS's against its tight Newton 1e-5 to 4e-5 mm. Discretisation: our tip is 0.11 mm
-(20k) and 0.05 mm (150k) from the continuum 12.22 mm; FEBio's tet4 0.67 and 0.15 mm.
-The time target (<= 0.5x FEBio's best) is met on these runs; the memory target (<= FEBio's)
-is not: at 150k our peak is the numpy arrays of the Newton loop (647 MiB, tracemalloc: the
-pattern's scatter maps 160 MB, one evaluation's element arrays about 300 MB, the line
-search's retained evaluations) plus PARDISO (632 MB: the 118M-entry single-precision factor
-of the 114k-unknown saddle-point system, 2.5x the flops of FEBio's 84k displacement-only
-system) plus the interpreter and libraries (81 MiB).
+FEBio's full Newton: 20k 5.1-5.6 s, 150k 170-212 s. The time target (<= 0.5x FEBio's best)
+is met at 150k and missed at 20k: there a whole process of ours is 1.25-1.6 s, of which the
+interpreter and imports 0.36 s and the solve about 1.0 s (PARDISO 0.45 s of it: analysis
+0.09, one factorisation 0.085-0.14, 40 triangular solves 7 ms each for the GMRES iterations
+that reuse it). The earlier table (2026-11-23, load 10-14) gave 0.18-0.49 at 20k: the load
+slowed FEBio's OpenMP threads more than ours, so those ratios did not hold on a quiet
+machine. A looser tolerance (config "tol 1e-6": solver error 8e-8 to 3e-7 mm, still 100
+times below FEBio BFGS's 1e-5 to 4e-5 mm) saves one Newton iteration and nothing measurable
+(1.25-1.40 s). The memory target (<= FEBio's) is missed at both sizes: at 20k our process
+is 70 MiB of interpreter and libraries before any mesh; at 150k PARDISO alone holds 600
+MiB (the 114k-unknown saddle-point system with one pressure per node: 4 unknowns per node
+against FEBio's 3), the interpreter 70, and the numpy arrays of the Newton loop about 520-570
+at the peak (tracemalloc: the scatter maps 78, the matrices the line search keeps 70, the
+kept evaluations' F and stress 70, one evaluation's element arrays about 200, the solid's
+constant arrays 40). Reaching FEBio's 990 MiB would need the whole evaluation streamed in
+element blocks (not only the stiffness, as now) and fewer kept evaluations.
 
 What each lever bought (counts and CPU; loads as stated):
+- element stiffness scattered into the matrix block by block (32768 tets) as the solid
+  computes it, int32 scatter maps above one block, the element stiffness and dv dropped from
+  kept evaluations (2026-11-26): 150k NH peak 1494 -> 1356 MiB in one process (the bench:
+  1461 -> 1288), the solve unchanged (18.1 s before, 17.7-20.0 after, one process each); below
+  one block the whole-mesh scatter is kept (measured faster there).
+- scipy.spatial imported only by the contact search: every process 0.2 s sooner to start
+  (the imports 0.46-0.72 -> 0.36 s).
 - factor reuse, GMRES right-preconditioned by the last factorisation from the first
   iteration on (symmetric tangents): 150k NH 11 factorisations (a failed full-load step, then
   two half steps; CPU 150 s at load 1.2-2.7) -> 1 factorisation, 7 Newton, 39 GMRES
@@ -201,6 +216,7 @@ def run_ours(size: str, material: str, config: str, threads: int) -> dict:
         "factorizations": st["factorizations"], "analyses": st["analyses"],
         "krylov_iterations": st["krylov_iterations"], "unknowns": st["unknowns"],
         "krylov_failed": st.get("krylov_failed"),
+        "pardiso_mb": st.get("linear_solver_mb"),  # PARDISO's own account, part of peak_mb
         "phases_cpu_s": {k[4:]: st[k] for k in st if k.startswith("cpu_")
                          and isinstance(st[k], float)},
     })
