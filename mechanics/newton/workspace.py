@@ -75,7 +75,7 @@ class _Newton(_Directions):
         x = self.X + u.reshape(-1, 3)
         asm = self.sys.start() if tangent else None
         # On a mesh of more than one block the bulk's element stiffness goes into the matrix
-        # block by block as it is computed (150k tets: peak 1494 -> 1345 MB); a smaller one
+        # block by block as it is computed (150k tets: peak 1494 -> 1345-1361 MB); a smaller one
         # is scattered after its evaluation, which measured faster (20k: 30 against 47 ms).
         stream = asm is not None and len(self.solid.V0) > BLOCK
         ev = self.solid.evaluate(x, tangent=tangent, sink=asm.add_stiffness if stream else None)
