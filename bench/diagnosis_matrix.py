@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{_fmt(r['explained'], '5.2f'):>5} {_fmt(r['delta_bic'], '7.1f'):>7} "
               f"{r['worst_mhd_mm']:6.2f} {_fmt(r['verified_worst_mhd_mm'], '6.2f'):>6} "
               f"{r['diagnose_s']:7.1f}", flush=True)
-        write_json(results.with_suffix(".partial.json"), {"suite": args.suite, "rows": rows})
+        write_json(args.out / "rows.partial.json", {"suite": args.suite, "rows": rows})
     summary = summarise(rows)
     print(f"top-1 {summary['top1']:.2f}, top-3 {summary['top3']:.2f}, false alarms on none "
           f"{summary['false_alarms_on_none']}, verified re-fit halves the worst MHD: "
