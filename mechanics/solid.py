@@ -281,7 +281,7 @@ class Solid:
         extra = [(idx, K12[:, IU, JU]) for idx, K12 in generic]
         if any_lin and self.formulation == "standard":
             extra.append((np.flatnonzero(lin), ((self.bulk_elem / V0)[lin, None]
-                                               * upper_outer(dv, dv)[lin])))
+                                               * upper_outer(dv[lin], dv[lin]))))
         for idx, Ke in extra:
             if not np.isfinite(Ke.sum()):
                 raise InvalidConfiguration("the tangent is not finite")

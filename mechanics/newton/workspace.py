@@ -73,11 +73,11 @@ class _Newton(_Directions):
         t0, c0 = time.perf_counter(), time.process_time()
         self.n_eval += 1
         x = self.X + u.reshape(-1, 3)
-        asm = self.sys.start() if tangent else None
         # On a mesh of more than one block the bulk's element stiffness goes into the matrix
         # block by block as it is computed (150k tets: peak 1494 -> 1345-1361 MB); a smaller one
         # is scattered after its evaluation, which measured faster (20k: 30 against 47 ms).
-        stream = asm is not None and len(self.solid.V0) > BLOCK
+        stream = tangent and len(self.solid.V0) > BLOCK
+        asm = self.sys.start() if stream else None
         ev = self.solid.evaluate(x, tangent=tangent, sink=asm.add_stiffness if stream else None)
         t0, c0 = self._lap("material", t0, c0)
         if asm is not None:  # the scatter ran inside the solid's evaluation: assembly's time
@@ -91,9 +91,8 @@ class _Newton(_Directions):
             raise InvalidConfiguration("the residual is not finite")
         A = None
         if tangent:
-            if not stream:
-                asm.add_stiffness(slice(None), ev.Kup.T)
-            A = asm.matrix(ev.dv, self.pp_diag)
+            A = asm.matrix(ev.dv, self.pp_diag) if stream else \
+                self.sys.assemble(ev.Kup, ev.dv, self.pp_diag)
             # both in A now; the line search keeps up to three evaluations (150k tets: the
             # element stiffness is 100 MB, dv 16 MB)
             ev = replace(ev, Kup=None, dv=None)
