@@ -32,6 +32,7 @@ import argparse
 import copy
 import os
 import platform
+import shutil
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -67,6 +68,10 @@ class Case:
     config: dict
     subject: Path | None = None  # a subject folder to run from its images instead
     tag: str = ""  # the case's folder name (default: the label)
+    # measured skins moved after the subject's problem is built ({position: move}), and the
+    # folder name of the run that builds it (the control's, whose stages it then shares)
+    moves: dict | None = None
+    base_tag: str = ""
 
 
 def _with(**effects) -> dict:
@@ -139,6 +144,15 @@ FEBIO_CASES = {
     "skin": "skin",
     "none": "bulk",
 }
+#: The measurement classes on the FEBio suite: the control subject (bulk truth) with one
+#: position's measured skin moved rigidly by about 4 mm (``_rigid``: a misregistration) or
+#: every measured skin offset 1 mm along its normal (``_offset``: a segmentation bias), moved
+#: in the problem the pipeline built from its images. label -> (position prefix, move).
+FEBIO_MEASUREMENT = {
+    "misregistration:prone": ("prone", _rigid),
+    "misregistration:supine_tilted": ("supine_tilted", _rigid),
+    "skin_offset": ("", _offset),
+}
 
 
 def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path | None
@@ -149,14 +163,23 @@ def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path |
 
     for name in names:
         for seed in seeds:
-            make = family_maker(size="small", cache=cache, physics=FEBIO_CASES[name])
+            physics = "bulk" if name in FEBIO_MEASUREMENT else FEBIO_CASES[name]
+            make = family_maker(size="small", cache=cache, physics=physics)
             tag = f"{name.replace(':', '_')}-{seed}"
-            subject, truth, _ = make(f"small-{seed}", root / tag / "subject")
+            base_tag = f"none-{seed}" if name in FEBIO_MEASUREMENT else tag
+            subject, truth, _ = make(f"small-{seed}", root / base_tag / "subject")
             sub = read_subject(subject)
             cfg = suite_config("truth_labels", truth, list(sub.positions), sub.reference)
             if name == "regions:gland":
                 cfg["mesh"]["keep_gland"] = True
-            yield Case(name, None, cfg, subject=subject, tag=tag)
+            if name not in FEBIO_MEASUREMENT:
+                yield Case(name, None, cfg, subject=subject, tag=tag)
+                continue
+            prefix, move = FEBIO_MEASUREMENT[name]
+            moved = [p for p in sub.positions if p.startswith(prefix)]
+            label = f"misregistration:{moved[0]}" if prefix else name
+            yield Case(label, None, cfg, subject=subject, tag=tag,
+                       moves={p: move for p in moved}, base_tag=base_tag)
 
 
 def matches(answer: str, label: str) -> bool:
@@ -167,7 +190,18 @@ def matches(answer: str, label: str) -> bool:
 def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
     run_dir = out / (case.tag or case.label.replace(":", "_")) / "run"
     t0 = time.perf_counter()
-    if case.subject is not None:
+    if case.moves:
+        from breastmodel.pipeline.run import run_subject
+
+        # the control's run builds the problem from the images; its measured skins move here
+        base_dir = out / case.base_tag / "run"
+        run_subject(case.subject, case.config, base_dir, progress=False)
+        folder = out / case.tag / "problem"
+        shutil.copytree(load_run(base_dir).problem_dir, folder, dirs_exist_ok=True)
+        for pos, move in case.moves.items():
+            _move_skin(folder, pos, move)
+        run_problem(folder, case.config, run_dir, progress=False)
+    elif case.subject is not None:
         from breastmodel.pipeline.run import run_subject
 
         run_subject(case.subject, case.config, run_dir, progress=False)
@@ -242,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--results", type=Path, default=None,
                     help="default bench/results/diagnosis_matrix[_febio].json")
     args = ap.parse_args(argv)
-    known = MOUND_CASES if args.suite == "mounds" else FEBIO_CASES
+    known = MOUND_CASES if args.suite == "mounds" else {**FEBIO_CASES, **FEBIO_MEASUREMENT}
     names = [n for n in (args.cases or ",".join(known)).split(",") if n]
     unknown = sorted(set(names) - set(known))
     if unknown:

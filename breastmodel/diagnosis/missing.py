@@ -41,7 +41,9 @@ construction, so its residual is what meshing and segmentation leave; otherwise 
 best-fitting position stands in for it.
 Held-out check: a candidate that acts on the calibration positions of the run is also re-fitted
 on those alone, and the RMS of the held-out positions is reported without and with it (a real
-effect improves the position that was not fitted).
+effect improves the position that was not fitted). The check decides only for candidates that
+act on the held-out positions too: the misregistration of one calibration position predicts
+nothing there.
 
 Budgets. The fitted model is evaluated first (and stored); every variant starts from its
 solution and may spend a budget of forward solves and seconds (:mod:`.budget`); one that
