@@ -29,6 +29,16 @@ SIGNIFICANT_EXPLAINED = 0.2
 #: acts on the calibration positions and on it, fitted on the calibration positions alone it
 #: must lower the held-out RMS.
 SIGNIFICANT_BIC = 6.0
+#: A misregistration (six rigid parameters on one position, which the held-out position
+#: cannot test) must also lower its position's RMS by more than this multiple of the noise
+#: floor: a registration error smaller than what meshing and segmentation leave cannot be
+#: told from the model's own misfit, which six rigid parameters absorb in part. (The skin
+#: offset acts on every position, the held-out one too, which tests it; the floor, from the
+#: best-fitting position, holds the offset itself there.) FEBio-truth subjects (bench/
+#: diagnosis_matrix.py --suite febio): prone moved 4 mm, its RMS falls 2.14 -> 0.64 mm
+#: (floor 0.16); invisible ligaments, a 0.9 mm "misregistration" of prone took it 0.53 ->
+#: 0.44 mm and passed every other test (true registration error 0.32 mm).
+SIGNIFICANT_MEASUREMENT_FLOOR = 1.0
 
 
 def score_candidates(candidates: Sequence[Candidate], lin: Linearisation, base: Baseline,
@@ -120,6 +130,13 @@ def _score(c: Candidate, columns, lin: Linearisation, base: Baseline, plan: Plan
                             and dbic < -SIGNIFICANT_BIC),
     }
     acts = set(c.acts_on) if c.measurement and c.acts_on else set(lin.obj_pos)
+    if c.measurement == "rigid":
+        rows = np.zeros(len(r_c), bool)
+        for p in acts & set(lin.obj_pos):
+            rows[lin.slices[p]] = True
+        entry["acted_rms_drop_mm"] = rms(base.r_base[rows]) - rms(r_c[rows])
+        entry["significant"] = entry["significant"] and bool(
+            entry["acted_rms_drop_mm"] > SIGNIFICANT_MEASUREMENT_FLOOR * base.floor)
     if base.held_out and acts & set(base.calibrate):
         r_h = lin.solve(cols, lo, hi, inert=c.replaces, rows=base.cal_rows)[0]
         entry["held_out"] = {

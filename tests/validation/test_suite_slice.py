@@ -11,8 +11,10 @@ and in ``$BREASTMODEL_VALIDATION_OUT/validation_slice.json`` when that is set.
 
 import json
 import os
+import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from breastmodel.validation import ARMS, family_maker, format_table, run_suite
@@ -35,10 +37,16 @@ def _febio():
 
 
 @pytest.fixture(scope="module")
-def slice_results(tmp_path_factory):
+def slice_work(tmp_path_factory):
+    out = os.environ.get("BREASTMODEL_VALIDATION_OUT")
+    return Path(out) if out else tmp_path_factory.mktemp("validation")
+
+
+@pytest.fixture(scope="module")
+def slice_results(slice_work):
     febio = _febio()
     out = os.environ.get("BREASTMODEL_VALIDATION_OUT")
-    work = Path(out) if out else tmp_path_factory.mktemp("validation")
+    work = slice_work
     # FEBio truths and truth meshes are cached by their inputs; CI keeps them between runs
     cache = Path(os.environ.get("BREASTMODEL_TRUTH_CACHE") or work / "truth_cache")
     make = family_maker(size="small", febio=febio, cache=cache)
@@ -91,3 +99,59 @@ def test_enforced_targets_are_met(slice_results):
               f"(bound {t['kind']} {t['bound']})"
               for r in slice_results for t in r["targets"] if t["enforced"] and not t["met"]]
     assert not missed, "\n".join(missed)
+
+
+def _rigid(v, t):
+    """About 4 mm: 3, 1, -2.5 mm and 1.5 deg about the anterior axis (y)."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.radians(1.5) * np.array([0.0, 1.0, 0.0])).as_matrix()
+    return v @ R.T + np.array([3.0, 1.0, -2.5])
+
+
+def _offset(v, t):
+    """1 mm outwards along the vertex normals."""
+    from breastmodel.diagnosis.measurement import _vertex_normals
+
+    return v + _vertex_normals(v, t)
+
+
+#: The diagnosis' CI slice on FEBio truth: the torso subject (bulk truth, the control) as its
+#: truth-labels run fitted it, and its problem with the prone measured skin moved rigidly by
+#: about 4 mm (a misregistration) or every measured skin offset 1 mm (a segmentation bias).
+DIAGNOSIS_CASES = {"none": {}, "misregistration:prone": {"prone": _rigid},
+                   "skin_offset": {"prone": _offset, "supine": _offset,
+                                   "supine_tilted_21": _offset}}
+
+
+@pytest.mark.parametrize("label", list(DIAGNOSIS_CASES))
+def test_the_diagnosis_names_the_cause_on_febio_truth(slice_results, slice_work, tmp_path,
+                                                      label):
+    from breastmodel.diagnosis import load_run, rank_candidates
+    from breastmodel.pipeline.problem import forget_problem
+    from breastmodel.pipeline.run import run_problem
+
+    base = load_run(slice_work / "runs" / "small-003" / "truth_labels")
+    run_dir = base.out
+    moves = DIAGNOSIS_CASES[label]
+    if moves:
+        folder = tmp_path / "problem"
+        shutil.copytree(base.problem_dir, folder)
+        for pos, move in moves.items():
+            with np.load(folder / f"{pos}_skin.npz") as z:
+                v, t = z["vertices"], z["triangles"]
+                np.savez(folder / f"{pos}_skin.npz", vertices=move(v, t), triangles=t)
+        forget_problem(folder)
+        run_dir = tmp_path / "run"
+        run_problem(folder, base.config, run_dir, progress=False)
+    d = rank_candidates(load_run(run_dir), progress=False, verify_top=0,
+                        work_dir=tmp_path / "evaluations")
+    significant = [r for r in d["ranking"] if r["significant"]]
+    answer = significant[0]["name"] if significant else "none"
+    print(f"{label}: {answer}; {d['verdict']}")
+    assert answer == label, d["verdict"]
+    if label == "skin_offset":
+        assert significant[0]["estimate"]["measured.offset_mm"] == pytest.approx(-1.0, abs=0.3)
+    if label == "misregistration:prone":
+        moved = float(np.linalg.norm([3.0, 1.0, -2.5]))
+        assert significant[0]["transform"]["translation_mm"] == pytest.approx(moved, rel=0.3)
