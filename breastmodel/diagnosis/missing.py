@@ -35,8 +35,9 @@ residuals (neighbouring skin nodes carry nearly the same error; see
 noise" when Delta BIC < -6, it lowers the residual RMS by more than a quarter of the noise
 floor (and 0.02 mm), removes at least 20 % of the baseline's squared residual and, where a
 position is held out, improves it (below); significant candidates rank first, each group by
-Delta BIC. A misregistration must also lower its position's RMS by more than the noise floor
-itself (``SIGNIFICANT_MEASUREMENT_FLOOR``). When none is significant,
+Delta BIC. A misregistration must also lower its position's RMS by more than the residual RMS
+the model leaves in the other scored positions (its misfit where no registration is in
+question; see :mod:`.scoring`). When none is significant,
 "nothing explains more than the noise" is the verdict. Noise floor: with the full-field
 inverse the reference position is reproduced by construction, so its residual is what
 meshing and segmentation leave; otherwise the best-fitting position stands in for it.
