@@ -35,10 +35,12 @@ SIGNIFICANT_BIC = 6.0
 #: part of any model misfit, so a registration error is claimed only where it stands out of
 #: that misfit. FEBio-truth subjects (bench/diagnosis_matrix.py --suite febio, 13 subjects,
 #: 26 rigid candidates): four positions moved 4 mm lowered their RMS by 0.92-1.54 mm, the
-#: others' RMS being 0.34-0.69 mm; on controls and weak effects the false ones by 0.01-0.29
-#: mm against 0.34-0.54 mm (a 1.7 mm "misregistration" of a control's prone whose true
-#: registration error is 0.40 mm: 0.29 against 0.34). The skin offset acts on every position,
-#: the held-out one too, which tests it.
+#: others' RMS being 0.34-0.69 mm; on the controls, the weak gland and the invisible
+#: ligaments the eight rigid candidates lowered it by 0.01-0.29 mm against 0.34-0.65 mm (a
+#: 1.7 mm "misregistration" of a control's prone whose true registration error is 0.40 mm:
+#: 0.29 against 0.34). A visible asymmetry's prone passes (0.82 against 0.78) but ranks
+#: after the asymmetry. The skin offset acts on every position, the held-out one too, which
+#: tests it.
 
 
 def score_candidates(candidates: Sequence[Candidate], lin: Linearisation, base: Baseline,

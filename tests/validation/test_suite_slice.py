@@ -4,9 +4,11 @@ truth computed by FEBio, each run through the whole pipeline (own segmentation; 
 It asserts that the suite reports every stage of every subject (a stage that stops is a row
 with its error, never a crash) and every target of :data:`breastmodel.validation.TARGETS`
 that is enforced (their issues have landed); the others are recorded in the printed table
-and in ``$BREASTMODEL_VALIDATION_OUT/validation_slice.json`` when that is set.
+and in ``$BREASTMODEL_VALIDATION_OUT/validation_slice.json`` when that is set. Then the
+diagnosis on the torso subject's truth-labels run: the control, prone misregistered, the
+skin offset (``DIAGNOSIS_CASES``).
 
-    pytest -m validation -rP tests/validation          # about 10-15 minutes on 2 cores
+    pytest -m validation -rP tests/validation          # about 25-30 minutes on 2 cores
 """
 
 import json
