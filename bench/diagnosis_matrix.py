@@ -35,7 +35,7 @@ import platform
 import shutil
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,7 +48,7 @@ from breastmodel.config import write_json  # noqa: E402
 from breastmodel.diagnosis import load_run, rank_candidates  # noqa: E402
 from breastmodel.phantom.mounds import mound_problem  # noqa: E402
 from breastmodel.pipeline.config import resolve_config  # noqa: E402
-from breastmodel.pipeline.problem import forget_problem  # noqa: E402
+from breastmodel.pipeline.problem import move_measured_skin  # noqa: E402
 from breastmodel.pipeline.run import run_problem  # noqa: E402
 
 NH = {"name": "neo_hookean", "nu": 0.49}
@@ -78,14 +78,6 @@ def _with(**effects) -> dict:
     out = copy.deepcopy(BASE)
     out["effects"].update(effects)
     return out
-
-
-def _move_skin(folder: Path, position: str, move: Callable) -> None:
-    path = folder / f"{position}_skin.npz"
-    with np.load(path) as z:
-        v, t = z["vertices"].copy(), z["triangles"].copy()
-    np.savez(path, vertices=move(v, t), triangles=t)
-    forget_problem(folder)
 
 
 def _rigid(v, t):
@@ -124,7 +116,7 @@ def mound_suite(root: Path, names: list[str], *, cells: tuple[int, ...],
         mound_problem(folder, truth, cells=tuple(cells), stress_free=stress_free,
                       noise_mm=noise, seed=3)
         for pos, move in (moves or {}).items():
-            _move_skin(folder, pos, move)
+            move_measured_skin(folder, pos, move)
         cfg = resolve_config({
             "model": copy.deepcopy(BASE), "stress_free": {"method": stress_free},
             "fit": {"enabled": True, "budget": 20, "sensitivity": False,
@@ -190,20 +182,18 @@ def matches(answer: str, label: str) -> bool:
 def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
     run_dir = out / (case.tag or case.label.replace(":", "_")) / "run"
     t0 = time.perf_counter()
-    if case.moves:
-        from breastmodel.pipeline.run import run_subject
+    from breastmodel.pipeline.run import run_subject
 
+    if case.moves:
         # the control's run builds the problem from the images; its measured skins move here
         base_dir = out / case.base_tag / "run"
         run_subject(case.subject, case.config, base_dir, progress=False)
         folder = out / case.tag / "problem"
         shutil.copytree(load_run(base_dir).problem_dir, folder, dirs_exist_ok=True)
         for pos, move in case.moves.items():
-            _move_skin(folder, pos, move)
+            move_measured_skin(folder, pos, move)
         run_problem(folder, case.config, run_dir, progress=False)
     elif case.subject is not None:
-        from breastmodel.pipeline.run import run_subject
-
         run_subject(case.subject, case.config, run_dir, progress=False)
     else:
         run_problem(case.problem, case.config, run_dir, progress=False)

@@ -35,7 +35,7 @@ log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = [
     "Problem", "evaluate_params", "forget_problem", "landmark_barycentric", "load_problem",
-    "mesh_of", "model_mesh", "position_model", "skin_nodes",
+    "mesh_of", "model_mesh", "move_measured_skin", "position_model", "skin_nodes",
     "predict_position", "score_position", "skin_node_regions", "solver_options",
     "stress_free_geometry",
 ]
@@ -130,6 +130,18 @@ def load_problem(folder: str | Path) -> Problem:
 def forget_problem(folder: str | Path) -> None:
     """Drop a problem folder from this process's memo (after its files were rewritten)."""
     _PROBLEMS.pop(str(Path(folder).resolve()), None)
+
+
+def move_measured_skin(folder: str | Path, position: str, move) -> np.ndarray:
+    """Rewrite a problem folder's measured skin of ``position`` as ``move(vertices,
+    triangles)`` (a known error put into the data: a misregistration, a segmentation offset)
+    and drop the folder from the memo. Returns the vertices before the move."""
+    path = Path(folder) / f"{position}_skin.npz"
+    with np.load(path) as z:
+        v, t = z["vertices"].copy(), z["triangles"].copy()
+    np.savez(path, vertices=move(v, t), triangles=t)
+    forget_problem(folder)
+    return v
 
 
 def solver_options(solver: Mapping[str, Any]):

@@ -18,7 +18,7 @@ from breastmodel.diagnosis.diagnose import correction_rows
 from breastmodel.diagnosis.measurement import _vertex_normals
 from breastmodel.phantom.mounds import mound_problem
 from breastmodel.pipeline.config import resolve_config
-from breastmodel.pipeline.problem import forget_problem
+from breastmodel.pipeline.problem import move_measured_skin
 from breastmodel.pipeline.run import run_problem
 
 NH = {"name": "neo_hookean", "nu": 0.49}
@@ -36,15 +36,6 @@ def _config():
                 "parameters": {TIED_E: {"min": 0.2, "max": 5.0}}}})
 
 
-def _move_skin(folder, position, move):
-    path = folder / f"{position}_skin.npz"
-    with np.load(path) as z:
-        v, t = z["vertices"].copy(), z["triangles"].copy()
-    np.savez(path, vertices=move(v, t), triangles=t)
-    forget_problem(folder)
-    return v
-
-
 #: The misregistration: 4 mm mostly sideways and 1.5 deg about the anterior axis.
 T0 = np.array([3.0, 1.0, -2.5])
 R0 = Rotation.from_rotvec(np.radians(1.5) * np.array([0.0, 1.0, 0.0])).as_matrix()
@@ -54,7 +45,7 @@ R0 = Rotation.from_rotvec(np.radians(1.5) * np.array([0.0, 1.0, 0.0])).as_matrix
 def test_a_misregistered_position_is_named_with_its_motion(tmp_path, position):
     prob = mound_problem(tmp_path / "problem", BASE)
     centre = np.zeros(3)
-    true = _move_skin(prob, position, lambda v, t: centre + (v - centre) @ R0.T + T0)
+    true = move_measured_skin(prob, position, lambda v, t: centre + (v - centre) @ R0.T + T0)
     run_problem(prob, _config(), tmp_path / "run", progress=False)
     d = rank_candidates(load_run(tmp_path / "run"), progress=False,
                         work_dir=tmp_path / "ev")
@@ -95,7 +86,7 @@ def test_a_misregistered_position_is_named_with_its_motion(tmp_path, position):
 def test_a_segmentation_offset_is_named(tmp_path):
     prob = mound_problem(tmp_path / "problem", BASE)
     for p in ("prone", "supine", "supine_tilted"):
-        _move_skin(prob, p, lambda v, t: v + 1.0 * _vertex_normals(v, t))  # 1 mm outwards
+        move_measured_skin(prob, p, lambda v, t: v + 1.0 * _vertex_normals(v, t))  # 1 mm outwards
     run_problem(prob, _config(), tmp_path / "run", progress=False)
     d = rank_candidates(load_run(tmp_path / "run"), progress=False, work_dir=tmp_path / "ev")
     best = d["ranking"][0]
@@ -121,7 +112,7 @@ def test_the_held_out_position_does_not_judge_a_calibration_position_s_misregist
     candidate insignificant (on a FEBio-truth subject with its prone skin moved 4 mm the old
     rule answered "none" at 88 % explained)."""
     prob = mound_problem(tmp_path / "problem", BASE)
-    _move_skin(prob, "prone", lambda v, t: v @ R0.T + T0)
+    move_measured_skin(prob, "prone", lambda v, t: v @ R0.T + T0)
     cfg = _config()
     cfg["fit"]["enabled"] = False  # the truth's moduli, and no re-fit to move the held-out
     run_problem(prob, cfg, tmp_path / "run", progress=False)

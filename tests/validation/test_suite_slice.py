@@ -129,7 +129,7 @@ DIAGNOSIS_CASES = {"none": {}, "misregistration:prone": {"prone": _rigid},
 def test_the_diagnosis_names_the_cause_on_febio_truth(slice_results, slice_work, tmp_path,
                                                       label):
     from breastmodel.diagnosis import load_run, rank_candidates
-    from breastmodel.pipeline.problem import forget_problem
+    from breastmodel.pipeline.problem import move_measured_skin
     from breastmodel.pipeline.run import run_problem
 
     base = load_run(slice_work / "runs" / "small-003" / "truth_labels")
@@ -140,10 +140,7 @@ def test_the_diagnosis_names_the_cause_on_febio_truth(slice_results, slice_work,
         shutil.copytree(base.problem_dir, folder)
         for pos, move in ((p, m) for q, m in moves.items()
                           for p in (base.positions if q == "*" else [q])):
-            with np.load(folder / f"{pos}_skin.npz") as z:
-                v, t = z["vertices"].copy(), z["triangles"].copy()
-            np.savez(folder / f"{pos}_skin.npz", vertices=move(v, t), triangles=t)
-        forget_problem(folder)
+            move_measured_skin(folder, pos, move)
         run_dir = tmp_path / "run"
         run_problem(folder, base.config, run_dir, progress=False)
     d = rank_candidates(load_run(run_dir), progress=False, verify_top=0,
