@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from mechanics.factorization import SingularSystem, factorisation_worth
 from mechanics.pardiso import _POOL as _POOL
@@ -42,6 +41,8 @@ class ScipySolver:
 
     def factorize(self, U: sp.csr_matrix, *, symmetric: bool = True) -> None:
         """U: upper triangle if ``symmetric`` else the full matrix."""
+        import scipy.sparse.linalg as spla  # here: the PARDISO path never needs it (0.1 s)
+
         A = full_from_upper(U) if symmetric else U
         try:
             # COLAMD with weak pivoting: measured 8 s vs 60 s (MMD) on the 20k-tet hemisphere.
@@ -59,8 +60,8 @@ class ScipySolver:
 
     last_refinements = 0
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        return self._lu.solve(b)
+    def solve(self, b: np.ndarray, tol: float | None = None) -> np.ndarray:
+        return self._lu.solve(b)  # a double-precision LU: nothing to refine to ``tol``
 
     precondition = solve
 

@@ -256,10 +256,11 @@ class PardisoSolver:
         """One solve with the factor as it is (no refinement): a preconditioner."""
         return self._h.solve(b).astype(np.float64)
 
-    def solve(self, b: np.ndarray) -> np.ndarray:
+    def solve(self, b: np.ndarray, tol: float | None = None) -> np.ndarray:
         """Solution of A x = b, refined in double precision to a relative residual of
-        ``refine_tol`` or until the residual stops falling 4x a step (the rounding floor,
-        about 1e-14 for the hemisphere; a double-precision factor usually needs no step).
+        ``tol`` (default ``refine_tol``) or until the residual stops falling 4x a step (the
+        rounding floor, about 1e-14 for the hemisphere; a double-precision factor usually
+        needs no step).
         A single-precision factor whose refinement stalls above 1e-9 is replaced by a
         double-precision one."""
         b = np.asarray(b, dtype=np.float64).ravel()
@@ -272,7 +273,7 @@ class PardisoSolver:
         for _ in range(12):
             r = b - self._matvec(x)
             err = np.linalg.norm(r) / nb
-            if not np.isfinite(err) or err <= self.refine_tol:
+            if not np.isfinite(err) or err <= (self.refine_tol if tol is None else tol):
                 break
             if err > 0.25 * prev:  # stalls
                 if self._h.precision == "double" or err <= _ACCURATE:
