@@ -349,7 +349,7 @@ def _tissue_surfaces(masks: TissueMasks, *, edge_mm, size_mm, keep_gland, say):
     edge_mm = max(edge_mm, 0.75 * float(grid.spacing.min()))
     vu, fu = tissue_surface(masks.union, grid, target_edge_mm=edge_mm, what="breast and muscle")
     vb, fb = tissue_surface(masks.breast, grid, target_edge_mm=edge_mm, what="breast")
-    say("meshing: surfaces %d + %d triangles (%.1f s)", len(fu), len(fb))
+    say("meshing: surfaces %d + %d triangles", len(fu), len(fb))
     voxel = float(masks.grid.spacing.max())
     gap = max(1.5 * voxel, 0.2 * size_mm)
     fi = _interface_patch(vb, fb, vu, fu, masks, gap_mm=gap)
