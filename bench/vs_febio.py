@@ -23,23 +23,28 @@ FEBio build are found, else the figures recorded in ``summary.json`` on a quiet 
 machine, labelled ``recorded``. Our rows are one per configuration (``--configs``): each
 is the default solver with one lever changed, so the table says what each lever buys.
 
-Measured 2026-11-26 on the 2-core machine with nothing else running (1-minute load 0.6-2.0,
-the load being these runs), 2 threads each, FEBio live in the same run. Rows in
-``bench/results/vs_febio.json``; ours at 150k NH rerun after the run below with PARDISO's own
-memory figure (15.9 s, 1282 MiB, PARDISO 600 MiB of it).
+Measured 2026-11-26 on the 2-core machine with nothing else running (1-minute load 0.4-1.8,
+the load being these runs), 2 threads each, FEBio live in the same run (its BFGS only; its
+full Newton rows of the run before are kept in ``bench/results/vs_febio.json``), after the
+right-preconditioned GMRES below. A second 20k run beside it is in brackets: FEBio itself
+varies by 15-30 % between runs.
 
 case        FEBio BFGS (its best)          ours (default)              time ratio   memory
             wall s  CPU s  MiB  fact.      wall s  CPU s  MiB   fact.   wall  CPU
-20k NH       2.20   3.71   123  10           1.34   1.64   213  1       0.61  0.44   1.7x
-20k Gent 5   1.92   3.33   123  10           1.25   1.54   215  1       0.65  0.46   1.7x
-150k NH     52.2   97.8    990  10          17.5   22.0   1288  1       0.34  0.22   1.3x
-150k Gent 5 48.9   91.5    990  10          15.5   19.2   1303  1       0.32  0.21   1.3x
+20k NH       2.45   4.16   123  10           1.26   1.45   203  1       0.51  0.35   1.7x
+  [second]  [2.13   3.61]                   [1.23   1.42]               [0.58]
+20k Gent 5   2.15   3.59   124  10           1.17   1.36   203  1       0.55  0.38   1.6x
+  [second]  [2.77   4.73]                   [1.29   1.49]               [0.47]
+150k NH     48.6   91.3    990  10          16.2   20.1   1282  1       0.33  0.22   1.3x
+150k Gent 5 45.0   84.7    990  10          14.6   18.3   1285  1       0.32  0.22   1.3x
 
 FEBio's full Newton: 20k 5.1-5.6 s, 150k 170-212 s. The time target (<= 0.5x FEBio's best)
-is met at 150k and missed at 20k: there a whole process of ours is 1.25-1.6 s, of which the
-interpreter and imports 0.36 s and the solve about 1.0 s (PARDISO 0.45 s of it: analysis
-0.09, one factorisation 0.085-0.14, 40 triangular solves 7 ms each for the GMRES iterations
-that reuse it). The earlier table (2026-11-23, load 10-14) gave 0.18-0.49 at 20k: the load
+is met at 150k and at 20k only in some runs (0.47-0.58): there a whole process of ours is
+1.17-1.29 s, of which the interpreter and imports about 0.25 s (scipy.sparse 0.14 s, half of
+it numpy.f2py and numpy.testing that SciPy's array-API layer imports) and the solve about
+0.8 s (cProfile: the sparsity pattern 0.09, PARDISO's analysis 0.09 and one factorisation
+0.09-0.11, 28 triangular solves of 6.5-7 ms for 26 GMRES iterations, 7 evaluations of the
+solid 0.29). The earlier table (2026-11-23, load 10-14) gave 0.18-0.49 at 20k: the load
 slowed FEBio's OpenMP threads more than ours, so those ratios did not hold on a quiet
 machine. A looser tolerance (config "tol 1e-6": solver error 8e-8 to 3e-7 mm, still 100
 times below FEBio BFGS's 1e-5 to 4e-5 mm) saves one Newton iteration and nothing measurable
@@ -53,6 +58,12 @@ constant arrays 40). Reaching FEBio's 990 MiB would need the whole evaluation st
 element blocks (not only the stiffness, as now) and fewer kept evaluations.
 
 What each lever bought (counts and CPU; loads as stated):
+- right-preconditioned flexible GMRES of our own (``mechanics/krylov.py``) instead of
+  SciPy's, and a fresh factorisation's solve refined to 1e-10 instead of the rounding floor
+  (2026-11-26): 20k NH 40 -> 28 triangular solves of 6.5 ms for the same 26 GMRES
+  iterations (SciPy's spent two solves per call beyond its iterations; the refinement 3 -> 1
+  steps), and the solver process no longer imports scipy.sparse.linalg (imports 0.26 ->
+  0.22 s); whole process 1.25-1.34 -> 1.17-1.29 s (20k), 150k 15.5-17.5 -> 14.6-16.2 s.
 - element stiffness scattered into the matrix block by block (32768 tets) as the solid
   computes it, int32 scatter maps above one block, the element stiffness and dv dropped from
   kept evaluations (2026-11-26): 150k NH peak 1494 -> 1356 MiB in one process (the bench:
