@@ -3,6 +3,8 @@ measured skin surface that predictions are scored against."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage as ndi
@@ -137,3 +139,125 @@ def skin_surface(
     remap = np.full(len(v), -1, np.int64)
     remap[used] = np.arange(len(used))
     return v[used], remap[f]
+
+
+#: Label maps of at least this many voxels get their skins remeshed in parallel processes
+#: (:func:`skin_surfaces`); below it, a worker's start (about 2 s of imports) costs more
+#: than it saves.
+PARALLEL_VOXELS = 4_000_000
+
+
+class skin_surfaces:
+    """:func:`skin_surface` of each label-map file, in order (``next``), on up to ``workers``
+    processes at once when the first map has at least :data:`PARALLEL_VOXELS` voxels; a
+    context manager. The processes start at once, so the caller's own work (the pipeline's
+    tet mesh, one core for most of its two minutes) runs beside them.
+
+    On an adult volume (320 x 180 x 200 voxels of 1 mm) one skin is 20 s, 16 of them
+    pymeshlab's remeshing, so a subject's three positions took 60 s one after the other.
+    Processes (``python -m meshing.surface``, like fTetWild's), not threads: two threads gave
+    identical surfaces, but glibc reported a corrupted heap at the exit of one run (pymeshlab
+    and ITK's readers are not known to be thread-safe); and not a multiprocessing pool, whose
+    workers import the caller's main script. A worker's repair warnings are repeated here
+    when its position's turn comes; its ValueError or RuntimeError is raised then (the
+    caller names the position). Below the size, each skin is made in this process when its
+    turn comes."""
+
+    def __init__(self, paths, *, target_edge_mm: float = 2.0, workers: int = 1):
+        self.paths = [str(p) for p in paths]
+        self.edge = float(target_edge_mm)
+        self.next_index = 0
+        self.jobs = None
+        big = False
+        if workers > 1 and len(self.paths) > 1:
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(self.paths[0])
+            reader.ReadImageInformation()
+            big = int(np.prod(reader.GetSize())) >= PARALLEL_VOXELS
+        if big:
+            import tempfile
+            from concurrent.futures import ThreadPoolExecutor
+
+            self.tmp = tempfile.TemporaryDirectory(prefix="skin_surfaces_")
+            self.pool = ThreadPoolExecutor(min(int(workers), len(self.paths)))  # they wait
+            self.jobs = [self.pool.submit(_run_worker, p, self.edge,
+                                          str(Path(self.tmp.name) / f"{k}.npz"))
+                         for k, p in enumerate(self.paths)]
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> tuple[np.ndarray, np.ndarray]:
+        k = self.next_index
+        if k >= len(self.paths):
+            raise StopIteration
+        self.next_index += 1
+        if self.jobs is None:
+            return skin_surface(sitk.ReadImage(self.paths[k]), target_edge_mm=self.edge)
+        with np.load(self.jobs[k].result()) as out:
+            for message in out["said"]:
+                repaired(str(message))
+            if "error" in out:
+                kind = ValueError if str(out["kind"]) == "ValueError" else RuntimeError
+                raise kind(str(out["error"]))
+            return out["vertices"], out["triangles"]
+
+    def close(self) -> None:
+        """Cancel the skins not started, wait for the running ones, remove their files."""
+        if self.jobs is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.tmp.cleanup()
+            self.jobs = None
+
+
+def _run_worker(path: str, target_edge_mm: float, out: str) -> str:
+    """One ``python -m meshing.surface`` process; its output file (see :func:`_main`)."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
+    done = subprocess.run([sys.executable, "-m", "meshing.surface", path, repr(target_edge_mm),
+                           out], env=env, capture_output=True, text=True, check=False)
+    if done.returncode != 0 or not Path(out).is_file():
+        tail = (done.stderr or done.stdout).strip().splitlines()[-5:]
+        raise RuntimeError(f"surface: the skin of {path} failed (exit code {done.returncode}): "
+                           + " | ".join(tail))
+    return out
+
+
+def _main(path: str, target_edge_mm: str, out: str) -> None:
+    """The worker: the skin of ``path`` (or its error) and its repair messages, to ``out``."""
+    import logging
+    import warnings
+
+    from imaging.atomic import write_atomic_with
+    from meshing.labels import MeshingWarning
+
+    logging.getLogger("meshing").setLevel(logging.ERROR)  # the caller repeats the warnings
+    result: dict = {}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", MeshingWarning)
+        try:
+            v, f = skin_surface(sitk.ReadImage(path), target_edge_mm=float(target_edge_mm))
+            result = {"vertices": v, "triangles": f}
+        except (ValueError, RuntimeError) as exc:
+            result = {"error": np.array(str(exc)), "kind": np.array(type(exc).__name__)}
+    said = [str(w.message) for w in caught if issubclass(w.category, MeshingWarning)]
+    write_atomic_with(out, lambda tmp: np.savez(tmp, said=np.array(said, dtype=str), **result),
+                      suffix=".npz")
+
+
+if __name__ == "__main__":
+    import sys
+
+    _main(*sys.argv[1:4])

@@ -115,31 +115,36 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
         import SimpleITK as sitk
 
         from breastmodel.config import write_json
+        from mechanics.threads import resolve_threads
         from meshing import mesh_labels
         from meshing.sizing import mesh_size
-        from meshing.surface import skin_surface
+        from meshing.surface import skin_surfaces
         from registration.transforms import read_transform, transform_points
 
         ref = subject.reference
         ref_labels = sitk.ReadImage(str(reg_dir / "reference_labels.nii.gz"))
         m = cfg["mesh"]
-        try:
-            size, why = mesh_size(m["size_mm"], ref_labels)
-            log.info("mesh: %g mm (%s)", size, why)
-            mesh = mesh_labels(ref_labels, size_mm=size, keep_gland=bool(m["keep_gland"]),
-                               threads=int(m["threads"]))
-        except (ValueError, RuntimeError) as exc:
-            raise StageError("mesh", str(exc), reg_dir / "reference_labels.nii.gz") from None
-        mesh.save_npz(d / "mesh.npz")
-        edge = float(cfg["surface"]["edge_mm"])
-        for pos in subject.positions:
-            path = reg_dir / ("reference_labels.nii.gz" if pos == ref
-                              else f"{pos}_labels_in_reference.nii.gz")
+        positions = list(subject.positions)
+        paths = [reg_dir / ("reference_labels.nii.gz" if pos == ref
+                            else f"{pos}_labels_in_reference.nii.gz") for pos in positions]
+        # the measured skins (worker processes on an adult volume) beside the tet mesh
+        with skin_surfaces(paths, target_edge_mm=float(cfg["surface"]["edge_mm"]),
+                           workers=resolve_threads(None)) as skins:
             try:
-                v, f = skin_surface(sitk.ReadImage(str(path)), target_edge_mm=edge)
+                size, why = mesh_size(m["size_mm"], ref_labels)
+                log.info("mesh: %g mm (%s)", size, why)
+                mesh = mesh_labels(ref_labels, size_mm=size, keep_gland=bool(m["keep_gland"]),
+                                   threads=int(m["threads"]))
             except (ValueError, RuntimeError) as exc:
-                raise StageError("surface", f"position {pos!r}: {exc}", path) from None
-            np.savez(d / f"{pos}_skin.npz", vertices=v, triangles=f)
+                raise StageError("mesh", str(exc),
+                                 reg_dir / "reference_labels.nii.gz") from None
+            mesh.save_npz(d / "mesh.npz")
+            for pos, path in zip(positions, paths, strict=True):
+                try:
+                    v, f = next(skins)
+                except (ValueError, RuntimeError) as exc:
+                    raise StageError("surface", f"position {pos!r}: {exc}", path) from None
+                np.savez(d / f"{pos}_skin.npz", vertices=v, triangles=f)
         gravity = json.loads((reg_dir / "gravity.json").read_text())
         landmarks = {}
         for pos, pts in (subject.landmarks or {}).items():

@@ -91,3 +91,41 @@ def test_skin_excludes_the_field_of_view_cut():
     # what remains is the hemisphere, less the rim that smoothing rounds at the cut
     assert triangle_areas(v, f).sum() == pytest.approx(2 * np.pi * 20.0**2, rel=0.05)
     assert c[:, 2].max() < z_cut + 0.5
+
+
+def test_skins_made_by_worker_processes_equal_those_made_here(tmp_path, monkeypatch):
+    """The pipeline's measured skins come from ``python -m meshing.surface`` workers on adult
+    volumes: same surfaces as in-process, the workers' repair warnings repeated here, and a
+    worker's error raised when its map's turn comes (the maps before it are delivered)."""
+    from pathlib import Path
+
+    import SimpleITK as sitk
+
+    from meshing import surface
+    from meshing.labels import MeshingWarning
+
+    island = ellipsoid_labels((16.0, 12.0, 10.0), spacing=1.0)
+    arr = sitk.GetArrayFromImage(island)
+    arr[1, 1, 1] = 1  # one voxel of breast apart from the rest: removed, with a warning
+    noisy = sitk.GetImageFromArray(arr)
+    noisy.CopyInformation(island)
+    empty = sitk.GetImageFromArray(np.zeros_like(arr))
+    empty.CopyInformation(island)
+    paths = []
+    for name, img in (("a", noisy), ("b", touching_boxes_labels(size=(30.0, 20.0, 24.0),
+                                                                split_y=10.0)), ("c", empty)):
+        paths.append(tmp_path / f"{name}.nii.gz")
+        sitk.WriteImage(img, str(paths[-1]))
+    here = [skin_surface(sitk.ReadImage(str(p)), target_edge_mm=1.5) for p in paths[:2]]
+    monkeypatch.setattr(surface, "PARALLEL_VOXELS", 0)
+    with surface.skin_surfaces(paths, target_edge_mm=1.5, workers=2) as skins:
+        assert skins.jobs is not None  # the worker processes, not this one
+        folder = Path(skins.tmp.name)
+        with pytest.warns(MeshingWarning, match="disconnected"):
+            v, f = next(skins)
+        assert np.array_equal(v, here[0][0]) and np.array_equal(f, here[0][1])
+        v, f = next(skins)
+        assert np.array_equal(v, here[1][0]) and np.array_equal(f, here[1][1])
+        with pytest.raises(ValueError, match="breast"):
+            next(skins)
+    assert not folder.exists()  # the workers' files are gone with the context
