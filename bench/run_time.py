@@ -1,0 +1,103 @@
+"""Benchmark: the whole ``breastmodel run`` with its fit on an adult-size subject, stage by stage.
+
+The target (issues "speed and memory" and "model accuracy"): the whole run with its fit in
+at most 3 minutes on 2 cores for a subject of about 380 x 100 x 290 voxels of 1 mm. The
+subject here is the adult phantom of seed 0 (``breastmodel.phantom.make_phantom``, 320 x 180
+x 200 voxels of 1 mm, 11.5 M voxels against the target's 11.0 M; a timing, not a
+validation). The run: the project's own
+segmentation and registration, the default mesh ("auto"), a least-squares fit of one breast
+modulus (both breasts tied, 0.1-4 kPa) on prone + supine, supine_tilted held out. Empty
+cache; thread counts from ``--threads`` (``BREASTMODEL_THREADS``, default the cores).
+
+    python bench/run_time.py [--work DIR] [--threads 2] [--out bench/results/run_time.json]
+
+Measured 2026-11-26 on the 2-core machine with nothing else running, 2 threads (the fit
+runs to its stiffest bound: ``make_phantom``'s positions are the undeformed anatomy moved
+rigidly, its default deformation being the identity, so no modulus fits them and its 14
+simulations are more than a subject in range needs):
+
+stage                          before (s)   after (s)
+segment (3 positions)             54.5        55.4
+register                          24.3        28.5
+mesh + measured skins            180.6       128.2
+fit (14 simulations + 2)         132.9       143.0
+stress-free + 3 predictions        4.4         4.6
+whole run                        403.7 *     366.0
+
+"before": the revision before the measured skins' worker processes (``meshing.surface
+.skin_surfaces``, started beside the tet mesh), run as ``breastmodel run`` (* whole process,
+with /usr/bin/time); the same mesh and skins, byte for byte. Where the rest goes: the mesh
+117 s (fTetWild 58 s on its one thread, the two tissue surfaces' remeshing 38 s, the
+quality repair 12 s, the sizing field 6 s); each measured skin 20 s, 16 of them pymeshlab's
+first remeshing pass from 522k marching-cubes triangles; the fit's simulations 8-10 s each
+(25.6k tets: the stress-free inverse of supine, then prone).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT)]
+
+CONFIG = {
+    "fit": {"enabled": True, "method": "least_squares", "calibrate": ["prone", "supine"],
+            "evaluate": ["supine_tilted"],
+            "parameters": {"materials.breast_left.E|materials.breast_right.E":
+                           {"min": 0.1, "max": 4.0, "step": 0.1}}},
+}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_run_time"))
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "run_time.json")
+    args = ap.parse_args(argv)
+    if args.threads is not None:
+        os.environ["BREASTMODEL_THREADS"] = str(args.threads)
+    import shutil
+
+    import SimpleITK as sitk
+
+    from breastmodel.config import write_json
+    from breastmodel.phantom import make_phantom
+    from breastmodel.pipeline import resolve_config, run_subject
+    from mechanics.threads import resolve_threads
+
+    subject = args.work / "subject"
+    if not (subject / "subject.toml").is_file():
+        make_phantom(subject, seed=args.seed, progress=False)
+    size = sitk.ReadImage(str(subject / "supine.nii.gz")).GetSize()
+    out = args.work / "run"
+    shutil.rmtree(out, ignore_errors=True)  # an empty cache: every stage runs
+    t0 = time.perf_counter()
+    res = run_subject(subject, resolve_config(CONFIG), out, progress=True)
+    wall = time.perf_counter() - t0
+    stages = [{"label": s.get("label", s["name"]), "wall_s": s["wall_s"]} for s in res["stages"]]
+    print(f"\nadult phantom seed {args.seed}, {size[0]} x {size[1]} x {size[2]} voxels, "
+          f"{resolve_threads(None)} threads")
+    print(f"{'stage':34s} {'wall s':>8s}")
+    for s in stages:
+        print(f"{s['label']:34s} {s['wall_s']:8.1f}")
+    print(f"{'whole run':34s} {wall:8.1f}   (target <= 180 s)")
+    mhd = {p: m["mhd_mm"] for p, m in res["metrics"]["positions"].items()}
+    fit = (res.get("params") or {}).get("fit", {})
+    print("MHD mm:", {p: round(v, 3) for p, v in mhd.items()}, "fitted:",
+          fit.get("best", {}).get("params"), f"({fit.get('n_simulations')} simulations)")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(args.out, {"subject": f"adult phantom seed {args.seed}", "voxels": list(size),
+                          "threads": resolve_threads(None), "wall_s": wall, "stages": stages,
+                          "mhd_mm": mhd, "params": res.get("params"), "config": CONFIG,
+                          "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())})
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
