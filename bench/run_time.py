@@ -16,18 +16,21 @@ runs to its stiffest bound: ``make_phantom``'s positions are the undeformed anat
 rigidly, its default deformation being the identity, so no modulus fits them and its 14
 simulations are more than a subject in range needs):
 
-stage                          first (s)   skins in workers   + fTetWild on 2 threads
-segment (3 positions)             54.5          55.4               54.5
-register                          24.3          28.5               25.5
-mesh + measured skins            180.6         128.2              112.4
-fit (14 simulations + 2)         132.9         143.0              131.9
-stress-free + 3 predictions        4.4           4.6                4.5
-whole run                        403.7 *       366.0              335.3
+stage                          first (s)   skins in workers     [mesh] threads = 2
+                                           (two runs, default)  (another mesh in general)
+segment (3 positions)             54.5       55.4 / 53.8            54.5
+register                          24.3       28.5 / 24.8            25.5
+mesh + measured skins            180.6      128.2 / 131.3          112.4
+fit (14 simulations + 2)         132.9      143.0 / 133.7          131.9
+stress-free + 3 predictions        4.4        4.6 /  4.8             4.5
+whole run                        403.7 *    366.0 / 354.8          335.3
 
 "first": the revision before the measured skins' worker processes (``meshing.surface
 .skin_surfaces``, started beside the tet mesh), run as ``breastmodel run`` (* whole process,
-with /usr/bin/time); then ``[mesh] threads`` 1 -> the cores (2). The same mesh and skins,
-byte for byte, and the same MHDs in all three. Where the rest goes: the mesh
+with /usr/bin/time). The same mesh and skins, byte for byte, and the same MHDs in all
+columns: on this subject fTetWild on two threads gives the one-thread mesh, but not on every
+input (the demo's label map: 3507 tets on one thread, 3511 on two), so the default stays one
+thread and the count stays in the problem stage's cache key. Where the rest goes: the mesh
 117 s (fTetWild 58 s on its one thread, the two tissue surfaces' remeshing 38 s, the
 quality repair 12 s, the sizing field 6 s); each measured skin 20 s, 16 of them pymeshlab's
 first remeshing pass from 522k marching-cubes triangles; the fit's simulations 8-10 s each

@@ -39,7 +39,7 @@ DEFAULTS: dict[str, Any] = {
     "preprocess": {},
     "segment": {},
     "register": {"require_fiducials": True},
-    "mesh": {"size_mm": "auto", "keep_gland": False, "threads": 0},
+    "mesh": {"size_mm": "auto", "keep_gland": False, "threads": 1},
     "surface": {"edge_mm": 2.0},
     "model": {
         "formulation": "anp",

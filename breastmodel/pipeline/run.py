@@ -231,10 +231,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     reg_dir, reg_key = R.stage("register", {"register": cfg["register"]},
                                [*seg_keys, *sub_files], _register(subject, seg_dirs, cfg))
     lm = [subject.root / "landmarks.csv"] if (subject.root / "landmarks.csv").is_file() else []
-    # not the thread count: fTetWild gives one mesh on 1 or 2 threads (tests/meshing/
-    # test_tetwild.py), so a cached mesh stands whatever count made it
-    mesh_key = {k: v for k, v in cfg["mesh"].items() if k != "threads"}
-    prob_dir, prob_key = R.stage("problem", {"mesh": mesh_key, "surface": cfg["surface"]},
+    prob_dir, prob_key = R.stage("problem", {"mesh": cfg["mesh"], "surface": cfg["surface"]},
                                  [reg_key, *lm], _problem(subject, reg_dir, cfg),
                                  label="mesh + measured skins")
     return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs,
