@@ -31,7 +31,6 @@ import contextlib
 import ctypes
 import os
 import struct
-import subprocess
 import sys
 import tempfile
 import warnings
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from imaging.atomic import write_atomic_with
+from meshing._fresh import run_module
 
 SEED = 20211  # returned to fTetWild in place of a hardware random number
 _GETVAL = "_ZNSt13random_device9_M_getvalEv"
@@ -242,15 +242,8 @@ def _in_fresh_process(v, f, options, sizing) -> tuple[np.ndarray, np.ndarray]:
         extra = {} if sizing is None else {"bg_v": sizing[0], "bg_t": sizing[1],
                                            "bg_s": sizing[2]}
         np.savez(src, v=v, f=f, options=np.array(repr(options)), **extra)
-        env = dict(os.environ)
-        root = str(Path(__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-        done = subprocess.run([sys.executable, "-m", "meshing._tetwild", str(src), str(dst)],
-                              env=env, capture_output=True, text=True, check=False)
-        if done.returncode != 0 or not dst.is_file():
-            tail = (done.stderr or done.stdout).strip().splitlines()[-5:]
-            raise RuntimeError("meshing: fTetWild failed (exit code "
-                               f"{done.returncode}): " + " | ".join(tail))
+        done = run_module("meshing._tetwild", [str(src), str(dst)], dst,
+                          what="meshing: fTetWild")
         for line in done.stderr.splitlines():
             if line.startswith("meshing: fTetWild's random seed"):
                 warnings.warn(line, RuntimeWarning, stacklevel=3)

@@ -10,6 +10,7 @@ import SimpleITK as sitk
 from scipy import ndimage as ndi
 
 from meshing import _meshlab
+from meshing._fresh import run_module
 from meshing.labels import Grid, repaired, tissue_masks
 
 
@@ -219,19 +220,8 @@ class skin_surfaces:
 
 def _run_worker(path: str, target_edge_mm: float, out: str) -> str:
     """One ``python -m meshing.surface`` process; its output file (see :func:`_main`)."""
-    import os
-    import subprocess
-    import sys
-
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parent.parent)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-    done = subprocess.run([sys.executable, "-m", "meshing.surface", path, repr(target_edge_mm),
-                           out], env=env, capture_output=True, text=True, check=False)
-    if done.returncode != 0 or not Path(out).is_file():
-        tail = (done.stderr or done.stdout).strip().splitlines()[-5:]
-        raise RuntimeError(f"surface: the skin of {path} failed (exit code {done.returncode}): "
-                           + " | ".join(tail))
+    run_module("meshing.surface", [path, repr(target_edge_mm), out], out,
+               what=f"surface: the skin of {path}")
     return out
 
 

@@ -127,14 +127,15 @@ def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
         positions = list(subject.positions)
         paths = [reg_dir / ("reference_labels.nii.gz" if pos == ref
                             else f"{pos}_labels_in_reference.nii.gz") for pos in positions]
+        cores = resolve_threads(None)
         # the measured skins (worker processes on an adult volume) beside the tet mesh
         with skin_surfaces(paths, target_edge_mm=float(cfg["surface"]["edge_mm"]),
-                           workers=resolve_threads(None)) as skins:
+                           workers=cores) as skins:
             try:
                 size, why = mesh_size(m["size_mm"], ref_labels)
                 log.info("mesh: %g mm (%s)", size, why)
                 mesh = mesh_labels(ref_labels, size_mm=size, keep_gland=bool(m["keep_gland"]),
-                                   threads=int(m["threads"]) or resolve_threads(None))
+                                   threads=int(m["threads"]) or cores)
             except (ValueError, RuntimeError) as exc:
                 raise StageError("mesh", str(exc),
                                  reg_dir / "reference_labels.nii.gz") from None
