@@ -58,7 +58,7 @@ DEFAULTS: dict[str, Any] = {
     "evaluate": {"positions": None, "refinement": False},
     "fit": {"enabled": False, "calibrate": None, "evaluate": None, "method": "optimizer",
             "budget": 100, "parameters": {}, "n_workers": 1, "scheduler": None,
-            "sensitivity": True, "sees": ["skin"]},
+            "sensitivity": True, "sees": ["skin"], "stress_free_tol_mm": 0.005},
 }
 
 _TABLE_KEYS = {
@@ -70,7 +70,7 @@ _TABLE_KEYS = {
                     "min_improvement_mm"},
     "evaluate": {"positions", "refinement"},
     "fit": {"enabled", "calibrate", "evaluate", "method", "budget", "parameters", "n_workers",
-            "scheduler", "sensitivity", "sees"},
+            "scheduler", "sensitivity", "sees", "stress_free_tol_mm"},
 }
 
 

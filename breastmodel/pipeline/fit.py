@@ -9,6 +9,16 @@ The optimiser is Nelder-Mead in the unit cube of log-parameters (bounds by clipp
 from the geometric centre of the bounds with a simplex spanning a quarter of each range. Every
 evaluation is stored atomically in ``work_dir/optimizer/<point key>.json``; the search is
 deterministic, so a killed fit replays its stored evaluations and resumes where it stopped.
+
+The searches (optimiser, least squares, sensitivity) evaluate the calibration positions only,
+each evaluation's stress-free inverse warm-started from the nearest earlier evaluation
+(:class:`~breastmodel.pipeline.fit_evaluations.Evaluator`) and converged to ``[fit]
+stress_free_tol_mm`` (0.005 mm; the run's own ``[stress_free] tol_mm`` is 0.05), then the
+held-out positions once at the optimum. Measured (2026-11-26, ``bench/run_time.py``'s adult
+phantom, 25.6k tets, and the demo's bulk fit): the inverse's tolerance biases the fitted
+modulus (demo: 0.284 kPa at 0.05 mm from cold starts; 0.273 / 0.2725 kPa at 0.005 mm cold /
+warm), and the warm starts pay for the tighter tolerance (adult, the search alone: 109 -> 91
+forward solves, about 144 -> 108 s; demo 52 -> 48 solves). The grid's points stay independent and cold.
 """
 
 from __future__ import annotations
@@ -23,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from breastmodel.pipeline.fit_evaluations import Evaluator as _Evaluator
 from breastmodel.pipeline.fit_statistics import identifiability, lsq_uncertainty
 
 log = logging.getLogger("breastmodel.pipeline")
@@ -76,52 +87,13 @@ def grid_points(parameters: Mapping[str, Mapping[str, Any]]) -> list[dict[str, f
     return grid(**axes)
 
 
-class _Evaluator:
-    """Memoised, stored evaluations of the objective (keys: rounded parameter values)."""
-
-    def __init__(self, problem_dir: Path, settings: Mapping[str, Any], folder: Path,
-                 progress: bool, *, residuals: bool = False):
-        self.problem_dir, self.settings, self.folder = problem_dir, settings, folder
-        self.residuals = residuals
-        self.folder.mkdir(parents=True, exist_ok=True)
-        self.history: list[dict] = []
-        self.progress = progress
-        self.n_new = 0
-
-    def __call__(self, params: Mapping[str, float]) -> dict:
-        from breastmodel.config import write_json
-        from breastmodel.pipeline.problem import evaluate_params
-        from breastmodel.sweep import point_key
-
-        params = {k: float(f"{v:.6g}") for k, v in params.items()}
-        key = point_key(params)
-        path = self.folder / f"{key}.json"
-        rec = None
-        if path.is_file():
-            try:
-                rec = json.loads(path.read_text())
-            except ValueError:
-                rec = None
-        if rec is None:
-            kw = {"residuals": True} if self.residuals else {}
-            rec = {"params": params, **evaluate_params(params, self.problem_dir, self.settings,
-                                                       **kw)}
-            write_json(path, rec)
-            self.n_new += 1
-        if not any(h["key"] == key for h in self.history):
-            self.history.append({"key": key, **rec})
-            if self.progress:
-                vals = ", ".join(f"{k.split('.', 1)[1]}={v:.4g}" for k, v in params.items())
-                print(f"     fit #{len(self.history):3d}: {vals} -> MHD "
-                      f"{rec['objective']:.4f} mm", flush=True)
-        return rec
-
-
 def optimise(problem_dir: Path, settings: Mapping[str, Any],
              parameters: Mapping[str, Mapping[str, Any]], *, budget: int = 100,
              work_dir: Path, progress: bool = False, x0: Mapping[str, float] | None = None,
-             ) -> dict:
+             warm: list | bool = True) -> dict:
     """Bounded Nelder-Mead in log-parameter space; at most ``budget`` objective evaluations.
+    ``warm``: warm-start each evaluation from the nearest earlier one (see ``_Evaluator``;
+    a list shares the earlier evaluations with another search of the same fit).
 
     Returns
     -------
@@ -134,7 +106,9 @@ def optimise(problem_dir: Path, settings: Mapping[str, Any],
     names = list(parameters)
     lo = np.log([_bounds(parameters[n])[0] for n in names])
     hi = np.log([_bounds(parameters[n])[1] for n in names])
-    ev = _Evaluator(Path(problem_dir), settings, Path(work_dir) / "optimizer", progress)
+    warm = _starts(warm)
+    ev = _Evaluator(Path(problem_dir), _search(settings), Path(work_dir) / "optimizer",
+                    progress, warm=warm)
 
     def params_of(z):
         z = np.clip(z, 0.0, 1.0)
@@ -159,17 +133,52 @@ def optimise(problem_dir: Path, settings: Mapping[str, Any],
                           "maxfev": budget, "adaptive": d > 2})
     except _BudgetSpent:
         pass
-    return _summary(ev.history, "optimizer")
+    return _held_out(_summary(ev.history, "optimizer"), problem_dir, settings, work_dir, warm)
 
 
 class _BudgetSpent(Exception):
     pass
 
 
+def _starts(warm: list | bool) -> list | None:
+    """The warm-start list of an evaluator: shared (a list), new (True) or none (False)."""
+    return warm if isinstance(warm, list) else ([] if warm else None)
+
+
+def _search(settings: Mapping[str, Any]) -> dict:
+    """The settings a search evaluates: the calibration positions only (the held-out ones
+    are solved once, at the optimum: :func:`_held_out`), and the stress-free inverse to
+    ``settings["search_tol_mm"]`` where that is tighter than its own tolerance."""
+    out = {**settings, "evaluate": []}
+    tol = settings.get("search_tol_mm")
+    if tol is not None and "stress_free" in settings:
+        sf = settings["stress_free"]
+        out["stress_free"] = {**sf, "tol_mm": min(float(sf["tol_mm"]), float(tol))}
+    return out
+
+
+def _held_out(res: dict, problem_dir, settings: Mapping[str, Any], work_dir,
+              warm: list | None) -> dict:
+    """Add the held-out positions' MHD at the optimum to ``res["best"]["mhd_mm"]``: one more
+    evaluation (stored in ``work_dir/held_out``) of those positions, its stress-free inverse
+    warm-started from the optimum's own."""
+    held = [p for p in settings.get("evaluate") or () if p not in settings["calibrate"]]
+    if not held:
+        return res
+    ev = _Evaluator(Path(problem_dir), {**_search(settings), "calibrate": held},
+                    Path(work_dir) / "held_out", False, warm=warm)
+    rec = ev(res["best"]["params"])
+    res["best"]["mhd_mm"] = {**res["best"]["mhd_mm"],
+                             **{p: rec["mhd_mm"].get(p, math.nan) for p in held}}
+    res["n_simulations"] += 1
+    res["forward_solves"] += int(rec.get("forward_solves", 0))
+    return res
+
+
 def least_squares(problem_dir: Path, settings: Mapping[str, Any],
                   parameters: Mapping[str, Mapping[str, Any]], *, budget: int = 100,
                   work_dir: Path, progress: bool = False,
-                  x0: Mapping[str, float] | None = None) -> dict:
+                  x0: Mapping[str, float] | None = None, warm: list | bool = True) -> dict:
     """Bounded trust-region least squares (scipy ``least_squares``, "trf") on the signed
     node-to-surface errors of the calibration positions, in log-parameter space.
 
@@ -177,15 +186,17 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
     skin node: a few parameters converge in a few tens of evaluations (forward-difference
     Jacobian with 5 % log steps, counted in ``budget``). The best evaluation by the objective
     (mean MHD) is returned, as for :func:`optimise`, with scipy's ``termination`` message;
-    evaluations are stored in ``work_dir/least_squares`` and replayed on resume.
+    evaluations are stored in ``work_dir/least_squares`` and replayed on resume; ``warm`` as
+    for :func:`optimise`.
     """
     from scipy.optimize import least_squares as scipy_lsq
 
     names = list(parameters)
     lo = np.log([_bounds(parameters[n])[0] for n in names])
     hi = np.log([_bounds(parameters[n])[1] for n in names])
-    ev = _Evaluator(Path(problem_dir), settings, Path(work_dir) / "least_squares", progress,
-                    residuals=True)
+    warm = _starts(warm)
+    ev = _Evaluator(Path(problem_dir), _search(settings), Path(work_dir) / "least_squares",
+                    progress, residuals=True, warm=warm)
     calibrate = list(settings["calibrate"])
     size: list[int] = []
     # The solver works on w = ln p - ln p_min + 1 >= 1: trf's first trust radius is |w0| and
@@ -229,8 +240,9 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
         ident = identifiability(sol.jac, names)
     except _BudgetSpent:
         ident = None
-    return {**_summary(ev.history, "least_squares"), "termination": stop,
-            "uncertainty": uncertainty, "identifiability": ident}
+    res = _held_out(_summary(ev.history, "least_squares"), problem_dir, settings, work_dir,
+                    warm)
+    return {**res, "termination": stop, "uncertainty": uncertainty, "identifiability": ident}
 
 
 def _summary(history: list[dict], method: str) -> dict:
@@ -277,18 +289,23 @@ def grid_search(problem_dir: Path, settings: Mapping[str, Any],
 
 def sensitivity(problem_dir: Path, settings: Mapping[str, Any], best: Mapping[str, float],
                 parameters: Mapping[str, Mapping[str, Any]], *, work_dir: Path,
-                rel: float = 0.1, progress: bool = False) -> dict:
+                rel: float = 0.1, progress: bool = False, objective: float | None = None,
+                warm: list | bool = True) -> dict:
     """One-at-a-time sensitivity at ``best``: objective at p(1 -+ rel) (clipped to bounds)
-    and the log-log slope d ln MHD / d ln p (2 evaluations per parameter)."""
-    ev = _Evaluator(Path(problem_dir), settings, Path(work_dir) / "optimizer", progress)
-    f0 = ev(best)["objective"]
+    and the log-log slope d ln MHD / d ln p (2 evaluations per parameter). ``objective``:
+    the objective at ``best`` when the fit has it (else evaluated); ``warm`` as for
+    :func:`optimise`."""
+    ev = _Evaluator(Path(problem_dir), _search(settings), Path(work_dir) / "optimizer",
+                    progress, warm=_starts(warm))
+    f0 = ev(best)["objective"] if objective is None else float(objective)
     out = {}
     for name, spec in parameters.items():
         lo, hi = _bounds(spec)
         p = float(best[name])
         pl, ph = max(lo, p * (1 - rel)), min(hi, p * (1 + rel))
-        fl = ev({**best, name: pl})["objective"]
-        fh = ev({**best, name: ph})["objective"]
+        # at a bound one side is the optimum itself, whose objective is known
+        fl = f0 if pl == p else ev({**best, name: pl})["objective"]
+        fh = f0 if ph == p else ev({**best, name: ph})["objective"]
         slope = None
         if (f0 and fl is not None and fh is not None and ph > pl
                 and all(math.isfinite(v) for v in (f0, fl, fh))):
@@ -306,6 +323,7 @@ def fit_parameters(problem_dir: Path, settings: Mapping[str, Any], fit: Mapping[
     from breastmodel.pipeline.config import get_param
 
     params = fit["parameters"]
+    starts: list = []  # the searches' stress-free geometries, shared with the sensitivity
     if fit["method"] == "grid":
         res = grid_search(problem_dir, settings, params, work_dir=work_dir,
                           scheduler=fit.get("scheduler"), n_workers=int(fit.get("n_workers", 2)),
@@ -315,7 +333,7 @@ def fit_parameters(problem_dir: Path, settings: Mapping[str, Any], fit: Mapping[
               if get_param(settings["model"], n) is not None}
         res = least_squares(problem_dir, settings, params, budget=int(fit["budget"]),
                             work_dir=work_dir, progress=progress,
-                            x0=x0 if len(x0) == len(params) else None)
+                            x0=x0 if len(x0) == len(params) else None, warm=starts)
     else:
         x0 = {}
         for n, spec in params.items():
@@ -325,11 +343,12 @@ def fit_parameters(problem_dir: Path, settings: Mapping[str, Any], fit: Mapping[
                 x0[n] = float(v)
         res = optimise(problem_dir, settings, params, budget=int(fit["budget"]),
                        work_dir=work_dir, progress=progress,
-                       x0=x0 if len(x0) == len(params) else None)
+                       x0=x0 if len(x0) == len(params) else None, warm=starts)
     res["calibrate"] = list(settings["calibrate"])
     res["evaluate"] = list(settings.get("evaluate") or [])
     res["sees"] = list(settings.get("sees") or ["skin"])
     if fit.get("sensitivity", True):
         res["sensitivity"] = sensitivity(problem_dir, settings, res["best"]["params"], params,
-                                         work_dir=work_dir, progress=progress)
+                                         work_dir=work_dir, progress=progress, warm=starts,
+                                         objective=res["best"]["objective"])
     return res

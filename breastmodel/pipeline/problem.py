@@ -252,7 +252,8 @@ def predict_position(problem: Problem, model: Mapping[str, Any], X: np.ndarray, 
 
 
 def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
-                    settings: Mapping[str, Any], *, residuals: bool = False) -> dict:
+                    settings: Mapping[str, Any], *, residuals: bool = False,
+                    start: np.ndarray | None = None, keep_X: bool = False) -> dict:
     """The fitting objective: stress-free estimate -> forward solve of every calibration
     position -> MHD on the skin and/or mean landmark error (``settings["sees"]``). Never
     raises for a failed solve (NaN instead).
@@ -266,6 +267,9 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
         the objective) and ``"sees"`` (``pipeline.config.FIT_SEES``; default ``["skin"]``)
     residuals : also return ``residual`` {calibration position: the least-squares fit's
         vector, see :func:`_residual`}
+    start : (N, 3) stress-free geometry of a nearby parameter vector, mm: the stress-free
+        inverse starts from it (a fit's warm start; None: from the reference geometry)
+    keep_X : also return ``X``, the stress-free geometry (once it is found)
 
     Returns
     -------
@@ -284,10 +288,15 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
     out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "landmarks_mm": {},
                            "forward_solves": 0, "error": None,
                            **({"residual": {}} if residuals else {})}
+    if start is not None and len(start) != model_mesh(problem, model).n_nodes:
+        start = None  # another mesh (an effect that splits the interface): no warm start
     try:
         X, info = stress_free_geometry(problem, model, settings["stress_free"],
-                                       settings["solver"])
+                                       settings["solver"],
+                                       start=None if start is None else (start, None))
         out["forward_solves"] += len(info["history"])
+        if keep_X:
+            out["X"] = X
         for pos in positions:
             try:
                 state = predict_position(problem, model, X, pos, settings["solver"])
@@ -345,7 +354,9 @@ def fit_settings(cfg: Mapping[str, Any], positions: Sequence[str], reference: st
     """Settings of :func:`evaluate_params` from a resolved run config.
 
     Calibration positions default to prone and the reference (the paper's calibration),
-    evaluation positions to the rest.
+    evaluation positions to the rest. ``search_tol_mm``: the stress-free tolerance of a
+    search's evaluations (``[fit] stress_free_tol_mm``, see :func:`breastmodel.pipeline.fit
+    .least_squares`).
     """
     fit = cfg["fit"]
     cal = fit["calibrate"] or [p for p in ("prone", reference) if p in positions]
@@ -356,4 +367,5 @@ def fit_settings(cfg: Mapping[str, Any], positions: Sequence[str], reference: st
         if p not in positions:
             raise ValueError(f"fit: position {p!r} is not among the subject's {sorted(positions)}")
     return {"model": cfg["model"], "solver": cfg["solver"], "stress_free": cfg["stress_free"],
-            "calibrate": cal, "evaluate": list(ev), "sees": list(fit["sees"])}
+            "calibrate": cal, "evaluate": list(ev), "sees": list(fit["sees"]),
+            "search_tol_mm": float(fit["stress_free_tol_mm"])}

@@ -21,7 +21,7 @@ E_OPT, S_OPT = 0.93, 7.4  # kPa; off-grid on purpose
 
 
 def _analytic(calls):
-    def evaluate(params, problem_dir, settings):
+    def evaluate(params, problem_dir, settings, **kw):
         calls.append(dict(params))
         e, s = params["materials.breast_left.E"], params["effects.skin.E"]
         if e < 0.25:  # the "solver" fails at low moduli, as in the paper
@@ -138,7 +138,7 @@ def _analytic_residual(calls):
     rng = np.random.default_rng(0)
     A = rng.normal(size=(200, 2))
 
-    def evaluate(params, problem_dir, settings, residuals=False):
+    def evaluate(params, problem_dir, settings, residuals=False, **kw):
         calls.append(dict(params))
         z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
                       math.log(params["effects.skin.E"] / S_OPT)])
@@ -186,7 +186,7 @@ def test_least_squares_uncertainty_matches_the_linear_model(monkeypatch, tmp_pat
     A = rng.normal(size=(300, 2))
     noise = 0.3 * rng.normal(size=300)
 
-    def evaluate(params, problem_dir, settings, residuals=False):
+    def evaluate(params, problem_dir, settings, residuals=False, **kw):
         z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
                       math.log(params["effects.skin.E"] / S_OPT)])
         r = A @ z + noise

@@ -1,0 +1,106 @@
+"""The fit's evaluations of the objective: memoised, stored atomically one record per
+parameter vector (``<key>.json``), replayed on resume, and optionally warm-started from the
+nearest earlier evaluation's stress-free geometry (``<key>.X.npy``)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("breastmodel.pipeline")
+
+__all__ = ["Evaluator"]
+
+
+class Evaluator:
+    """Memoised, stored evaluations of the objective (keys: rounded parameter values).
+
+    With ``warm`` (a list, shared by the evaluators of one fit), each new evaluation starts
+    its stress-free inverse from the stress-free geometry of the nearest earlier evaluation
+    (in log-parameter space), which is stored beside its record (``<key>.X.npy``) so that a
+    resumed fit starts each evaluation exactly where the uninterrupted one did. A warm start
+    that fails is retried from the reference geometry.
+    """
+
+    def __init__(self, problem_dir: Path, settings: Mapping[str, Any], folder: Path,
+                 progress: bool, *, residuals: bool = False, warm: list | None = None):
+        self.problem_dir, self.settings, self.folder = problem_dir, settings, folder
+        self.residuals = residuals
+        self.warm = warm
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.history: list[dict] = []
+        self.progress = progress
+        self.n_new = 0
+
+    def __call__(self, params: Mapping[str, float]) -> dict:
+        from breastmodel.config import write_json
+        from breastmodel.sweep import point_key
+
+        params = {k: float(f"{v:.6g}") for k, v in params.items()}
+        key = point_key(params)
+        path = self.folder / f"{key}.json"
+        rec = None
+        if path.is_file():
+            try:
+                rec = json.loads(path.read_text())
+            except ValueError:
+                rec = None
+        if rec is None:
+            rec = {"params": params, **self._evaluate(params, key)}
+            write_json(path, rec)
+            self.n_new += 1
+        elif self.warm is not None and (self.folder / f"{key}.X.npy").is_file():
+            self._remember(params, np.load(self.folder / f"{key}.X.npy"), key)
+        if not any(h["key"] == key for h in self.history):
+            self.history.append({"key": key, **rec})
+            if self.progress:
+                vals = ", ".join(f"{k.split('.', 1)[1]}={v:.4g}" for k, v in params.items())
+                print(f"     fit #{len(self.history):3d}: {vals} -> MHD "
+                      f"{rec['objective']:.4f} mm", flush=True)
+        return rec
+
+    def _evaluate(self, params: dict, key: str) -> dict:
+        from breastmodel.pipeline.problem import evaluate_params
+
+        kw: dict[str, Any] = {"residuals": True} if self.residuals else {}
+        if self.warm is None:
+            return evaluate_params(params, self.problem_dir, self.settings, **kw)
+        start = self._nearest(params)
+        out = None
+        if start is not None:
+            out = evaluate_params(params, self.problem_dir, self.settings, start=start[1],
+                                  keep_X=True, **kw)
+            out["warm_start"] = start[0]
+            if out.get("error"):
+                log.info("fit: the evaluation started from %s failed (%s); retrying from the "
+                         "reference geometry", start[0], out["error"])
+                out = None
+        if out is None:
+            out = evaluate_params(params, self.problem_dir, self.settings, keep_X=True, **kw)
+        X = out.pop("X", None)
+        if X is not None and not out.get("error"):
+            np.save(self.folder / f"{key}.X.tmp.npy", X)  # then renamed: atomic
+            (self.folder / f"{key}.X.tmp.npy").replace(self.folder / f"{key}.X.npy")
+            self._remember(params, X, key)
+        return out
+
+    def _remember(self, params: dict, X: np.ndarray, key: str) -> None:
+        if not any(k == key for k, _, _ in self.warm):
+            self.warm.append((key, dict(params), X))
+
+    def _nearest(self, params: dict) -> tuple[str, np.ndarray] | None:
+        """(key, X) of the stored evaluation nearest to ``params`` in log space."""
+        best, dist = None, math.inf
+        for key, p, X in self.warm:
+            if set(p) != set(params):
+                continue
+            d = sum(math.log(params[n] / p[n]) ** 2 for n in params)
+            if d < dist:
+                best, dist = (key, X), d
+        return best
