@@ -18,7 +18,8 @@ held-out positions once at the optimum. Measured (2026-11-26, ``bench/run_time.p
 phantom, 25.6k tets, and the demo's bulk fit): the inverse's tolerance biases the fitted
 modulus (demo: 0.284 kPa at 0.05 mm from cold starts; 0.273 / 0.2725 kPa at 0.005 mm cold /
 warm), and the warm starts pay for the tighter tolerance (adult, the search alone: 109 -> 91
-forward solves, about 144 -> 108 s; demo 52 -> 48 solves). The grid's points stay independent and cold.
+forward solves, about 144 -> 108 s; demo 52 -> 48 solves). The grid's points stay
+independent and cold.
 """
 
 from __future__ import annotations
