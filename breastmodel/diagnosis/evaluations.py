@@ -69,16 +69,21 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     u_start = start.get("u", {})
     sf_start = (np.asarray(start["X"]), u_start.get(problem.reference)) if "X" in start \
         else None
-    X, _ = stress_free_geometry(problem, model, settings["stress_free"], settings["solver"],
-                                before_solve=lambda: budget.charge("a stress-free iteration"),
-                                start=sf_start)
+    solver = dict(settings["solver"])
+    if math.isfinite(budget.max_seconds):  # a solve stops inside too, not only between solves
+        solver["deadline"] = budget.deadline
+    with budget.solving("the stress-free inverse"):
+        X, _ = stress_free_geometry(
+            problem, model, settings["stress_free"], solver, start=sf_start,
+            before_solve=lambda: budget.charge("a stress-free iteration"))
     out: dict[str, Any] = {"residual": {}, "mhd_mm": {}}
     us = {}
     for pos in settings["positions"]:
         budget.charge(f"position {pos}")
         u0 = u_start.get(pos)
-        x = predict_position(problem, model, X, pos, settings["solver"],
-                             u0=None if u0 is None else np.asarray(u0)).x
+        with budget.solving(f"position {pos}"):
+            x = predict_position(problem, model, X, pos, solver,
+                                 u0=None if u0 is None else np.asarray(u0)).x
         us[pos] = x - X
         d, _ = point_to_surface(x[skin_nodes(problem, len(x))], *problem.skins[pos],
                                 signed=True)

@@ -6,12 +6,13 @@ tangent, and the line search along it."""
 from __future__ import annotations
 
 import logging
+import time
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mechanics.linear_solvers import SingularSystem
-from mechanics.newton.options import SolverOptions
+from mechanics.newton.options import SolverError, SolverOptions
 from mechanics.solid import InvalidConfiguration
 
 if TYPE_CHECKING:
@@ -151,6 +152,9 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
     exact_from = None  # iteration from which the step's linear solves are exact
     nw.exact = False
     for it in range(opt.max_newton + 1):
+        if opt.deadline is not None and time.perf_counter() > opt.deadline:
+            raise SolverError(f"mechanics: the time budget ran out at load {lam:.4g} "
+                              f"(Newton iteration {it} of the step)")
         ref = max(rc, r0, 1e-300)
         rel = rf / ref
         entry["residuals"].append(rel)

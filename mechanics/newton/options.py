@@ -68,6 +68,9 @@ class SolverOptions:
         ``BREASTMODEL_THREADS``, else the cores this process may run on (never the load;
         see :func:`mechanics.linear_solvers.resolve_threads`). The Newton loop's own BLAS
         calls (vector operations) run on one thread.
+    deadline : a ``time.perf_counter()`` instant after which the solve stops at its next
+        Newton iteration with :class:`SolverError` (a caller's time budget: a diagnosis'
+        evaluation); None: no limit
     """
 
     tol: float = 1e-8
@@ -89,6 +92,7 @@ class SolverOptions:
     accept_residual: float = 1e-3
     progress: bool = False
     threads: int | None = None
+    deadline: float | None = None
 
 
 class SolverError(RuntimeError):

@@ -43,6 +43,20 @@ def test_very_soft_tissue_converges_with_cutbacks():
     assert np.all(st.J > 0)
 
 
+def test_a_deadline_stops_the_solve_at_its_next_newton_iteration():
+    import time
+    from dataclasses import replace
+
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, {1: {"name": "neo_hookean", "E": 0.2, "nu": 0.49}},
+                        {"gravity": {"direction": (0, 0, -1)}, "fixed": {"node_set": "fixed"}})
+    late = replace(OPT, deadline=time.perf_counter() - 1.0)
+    with pytest.raises(SolverError, match=r"time budget ran out at load .* \(Newton iteration "
+                                          r"0 of the step\)"):
+        solve(model, options=late)
+    assert solve(model, options=replace(OPT, deadline=time.perf_counter() + 3600)).converged
+
+
 def test_divergence_keeps_last_converged_state():
     # Squashing a unit cube by 1.5 mm must invert elements somewhere before full load.
     mesh = box((2, 2, 2))
