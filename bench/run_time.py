@@ -23,7 +23,7 @@ stage                          first (s)   skins in workers     [mesh] threads =
 segment (3 positions)             54.5       55.4 / 53.8            54.5               62.3
 register                          24.3       28.5 / 24.8            25.5               30.5
 mesh + measured skins            180.6      128.2 / 131.3          112.4              141.8
-fit (14 simulations + 2)         132.9      143.0 / 133.7          131.9              106.9 **
+fit (14 + 2 simulations; **)     132.9      143.0 / 133.7          131.9              106.9 **
 stress-free + 3 predictions        4.4        4.6 /  4.8             4.5                5.0
 whole run                        403.7 *    366.0 / 354.8          335.3              353.3
 
@@ -40,7 +40,8 @@ first remeshing pass from 522k marching-cubes triangles; the fit's simulations 8
 
 ** The last column: the fit's searches warm-start each stress-free inverse from the nearest
 earlier evaluation, converge it to 0.005 mm (``[fit] stress_free_tol_mm``; it was the run's
-0.05 mm) and solve the held-out position once, at the optimum (``breastmodel.pipeline.fit``).
+0.05 mm) and solve the held-out position once, at the optimum (``breastmodel.pipeline.fit``;
+14 + 1 simulations and one sensitivity evaluation).
 The machine ran about 10-20 % slower that hour (the unchanged stages: segmentation 62 s
 against 54, the mesh 142 s against 131), so the fit alone was also timed on the stored
 problem, one after the other: 148.4 s before (109 forward solves in the search, plus its
