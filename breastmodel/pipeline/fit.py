@@ -17,8 +17,7 @@ stress_free_tol_mm`` (0.005 mm; the run's own ``[stress_free] tol_mm`` is 0.05),
 held-out positions once at the optimum. Measured (2026-11-26, ``bench/run_time.py``'s adult
 phantom, 25.6k tets, and the demo's bulk fit): the inverse's tolerance biases the fitted
 modulus (demo: 0.284 kPa at 0.05 mm from cold starts; 0.273 / 0.2725 kPa at 0.005 mm cold /
-warm; each the lowest-MHD evaluation, which the least squares then returned), and the warm
-starts pay for the tighter tolerance (adult, the search alone: 109 -> 91
+warm), and the warm starts pay for the tighter tolerance (adult, the search alone: 109 -> 91
 forward solves, about 144 -> 108 s; demo 52 -> 48 solves). The grid's points stay
 independent and cold.
 """
@@ -186,11 +185,10 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
 
     Uses the residual vector rather than its MHD summary, so each iteration gains from every
     skin node: a few parameters converge in a few tens of evaluations (forward-difference
-    Jacobian with 5 % log steps, counted in ``budget``). The least-squares solution is
-    returned: the evaluation of smallest residual sum of squares, where the reported
-    uncertainty is computed (not the evaluation of smallest mean MHD, which is often a
-    Jacobian probe beside it: on the suite's small-000 1.051 kPa against the residual's
-    0.9725, truth 0.94), with scipy's ``termination`` message;
+    Jacobian with 5 % log steps, counted in ``budget``). The best evaluation by the objective
+    (mean MHD) is returned, as for :func:`optimise` (often a Jacobian probe beside the
+    least-squares optimum, where the uncertainty is computed: on the suite's small-000
+    1.051 against 0.973 kPa, truth 0.94), with scipy's ``termination`` message;
     evaluations are stored in ``work_dir/least_squares`` and replayed on resume; ``warm`` as
     for :func:`optimise`.
     """
@@ -245,26 +243,18 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
         ident = identifiability(sol.jac, names)
     except _BudgetSpent:
         ident = None
-    def cost(h):  # what the least squares minimises: the calibration residuals' squares
-        res = h.get("residual") or {}
-        if not all(p in res for p in calibrate):
-            return math.inf
-        return float(sum(np.sum(np.square(res[p])) for p in calibrate))
-
-    res = _held_out(_summary(ev.history, "least_squares", cost), problem_dir, settings,
-                    work_dir, warm)
+    res = _held_out(_summary(ev.history, "least_squares"), problem_dir, settings, work_dir,
+                    warm)
     return {**res, "termination": stop, "uncertainty": uncertainty, "identifiability": ident}
 
 
-def _summary(history: list[dict], method: str, cost=None) -> dict:
-    """The fit record of a search's evaluations: the best by ``cost`` (a function of an
-    evaluation's record; default its objective, the mean MHD), counts, the history."""
+def _summary(history: list[dict], method: str) -> dict:
     ok = [h for h in history if h.get("objective") is not None
           and math.isfinite(h["objective"])]
     if not ok:
         raise RuntimeError(f"fit ({method}): every one of {len(history)} evaluations failed; "
                            f"first error: {history[0].get('error') if history else None}")
-    best = min(ok, key=cost or (lambda h: h["objective"]))
+    best = min(ok, key=lambda h: h["objective"])
     return {"method": method,
             "best": {"params": best["params"], "objective": best["objective"],
                      "mhd_mm": best["mhd_mm"]},

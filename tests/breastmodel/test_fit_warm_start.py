@@ -1,4 +1,4 @@
-"""The fit's warm starts, held-out positions and optimum (breastmodel.pipeline.fit_evaluations).
+"""The fit's warm starts and held-out positions (breastmodel.pipeline.fit_evaluations).
 
 The FE objective is replaced by an analytic one that also returns a "stress-free geometry"
 (an array made from the parameters) and records the start each evaluation was given, so the
@@ -114,24 +114,3 @@ def test_sensitivity_at_a_bound_reuses_the_optimum(monkeypatch, tmp_path):
     assert [c["e"] for c in calls] == [pytest.approx(3.6)]  # the low side only
     s = sens[NAME]
     assert s["objective"] == s["objective_high"] == 1.5 and s["high"] == 4.0
-
-
-def test_least_squares_returns_its_own_optimum_not_the_lowest_mhd(monkeypatch, tmp_path):
-    """The residual is zero at E_OPT, but the MHD-like objective is lowest at 1.2 kPa (a
-    mean of distances need not agree with the sum of squares): the fit returns the least-
-    squares solution, where its uncertainty is computed."""
-    def evaluate(params, problem_dir, settings, residuals=False, **kw):
-        e = params[NAME]
-        r = np.array([math.log(e / E_OPT), -0.5 * math.log(e / E_OPT)])
-        out = {"objective": 0.5 + math.log(e / 1.2) ** 2, "mhd_mm": {"prone": 0.5},
-               "forward_solves": 3, "error": None}
-        if residuals:
-            out["residual"] = {"prone": r.tolist()}
-        return out
-
-    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
-    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=30,
-                               work_dir=tmp_path / "w", x0={NAME: 2.5})
-    assert res["best"]["params"][NAME] == pytest.approx(E_OPT, rel=2e-3)
-    visited = [h["params"][NAME] for h in res["history"]]
-    assert any(abs(math.log(e / 1.2)) < abs(math.log(E_OPT / 1.2)) for e in visited)
