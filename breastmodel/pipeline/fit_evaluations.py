@@ -35,6 +35,7 @@ class Evaluator:
         self.warm = warm
         self.folder.mkdir(parents=True, exist_ok=True)
         self.history: list[dict] = []
+        self.seen: dict[str, dict] = {}  # key -> record, this evaluator's so far
         self.progress = progress
         self.n_new = 0
 
@@ -44,6 +45,8 @@ class Evaluator:
 
         params = {k: float(f"{v:.6g}") for k, v in params.items()}
         key = point_key(params)
+        if key in self.seen:  # a search asks again (the Jacobian's base point): no disk
+            return self.seen[key]
         path = self.folder / f"{key}.json"
         rec = None
         if path.is_file():
@@ -57,12 +60,12 @@ class Evaluator:
             self.n_new += 1
         elif self.warm is not None and (self.folder / f"{key}.X.npy").is_file():
             self._remember(params, np.load(self.folder / f"{key}.X.npy"), key)
-        if not any(h["key"] == key for h in self.history):
-            self.history.append({"key": key, **rec})
-            if self.progress:
-                vals = ", ".join(f"{k.split('.', 1)[1]}={v:.4g}" for k, v in params.items())
-                print(f"     fit #{len(self.history):3d}: {vals} -> MHD "
-                      f"{rec['objective']:.4f} mm", flush=True)
+        self.seen[key] = rec
+        self.history.append({"key": key, **rec})
+        if self.progress:
+            vals = ", ".join(f"{k.split('.', 1)[1]}={v:.4g}" for k, v in params.items())
+            print(f"     fit #{len(self.history):3d}: {vals} -> MHD "
+                  f"{rec['objective']:.4f} mm", flush=True)
         return rec
 
     def _evaluate(self, params: dict, key: str) -> dict:
