@@ -86,7 +86,9 @@ def load_run(out: str | Path) -> RunData:
     config = load_run_config(out / "config.toml", drop=("subject",))
 
     def stage_dir(name: str, label: str | None = None) -> Path:
-        rows = [s for s in stages if s["name"] == name and (label is None or s["label"] == label)]
+        # the run's own stages, not those of its mesh-refinement check (same names)
+        rows = [s for s in stages if s["name"] == name and (label is None or s["label"] == label)
+                and not s["label"].startswith("refinement:")]
         if not rows:
             raise StageError("diagnose", f"stages.json lists no {label or name!r} stage", out)
         d = cache / name / rows[-1]["key"]
