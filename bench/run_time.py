@@ -48,6 +48,28 @@ problem, one after the other: 148.4 s before (109 forward solves in the search, 
 sensitivity's one evaluation), 108.3 s with the change (91 solves; the sensitivity, about 4 s
 more, left out). The first two evaluations, at the soft start of 1 and 1.05 kPa, take half
 of it (39 and 22 s). The fitted modulus and the MHDs agree to 4 digits.
+
+The mesh beside the other stages (``breastmodel.pipeline.run.prepare_subject``): the mesh
+needs only the reference's label map, so it is made in a worker process
+(``meshing.background``) from the moment the reference is segmented, while the other
+positions are segmented and registered and the measured skins made; its stage's time below is
+the wait for it after the skins. Same mesh and skins byte for byte, same MHDs (3.226 / 0.420
+/ 2.201 mm). Measured 2026-11-26, quiet machine, one run:
+
+stage                          before (last column above)   mesh in a worker
+segment (3 positions)                  62.3                       57.5
+register                               30.5                       38.5
+measured skins                            -                       52.0
+mesh (the wait for it)                    -                        5.9
+mesh + measured skins                 141.8                          -
+fit                                   106.9                       92.5
+the rest                                5.0                        4.5
+whole run                             353.3                      257.4
+
+The whole process used 394 CPU-s in 258 s (``/usr/bin/time``: 1.5 cores on average). What
+is left is CPU time itself: the fit (15 simulations here, the phantom's fit running to its
+stiffest bound) and the skins (20 s each, pymeshlab's remeshing). The fit's code did not
+change between the two columns: its 106.9 against 92.5 s is the machine's hour.
 """
 
 from __future__ import annotations

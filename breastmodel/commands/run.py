@@ -1,10 +1,11 @@
 """``breastmodel run SUBJECT --config run.toml --out DIR``: the cached subject pipeline.
 
-segment -> register -> mesh + measured skins -> [fit] -> stress-free geometry -> predict every
-position -> metrics -> report. Writes ``DIR/metrics.json`` (per position: modified Hausdorff
-distance, Hausdorff, RMSE, p95 of node-to-surface distances on the skin, per skin region,
-landmark errors where ``landmarks.csv`` exists), ``DIR/<position>_predicted.ply`` (reference
-frame), ``DIR/params.json``, ``DIR/report.html``, ``DIR/stages.json`` and the resolved config.
+segment -> register -> measured skins (the reference's mesh made beside them) -> [fit] ->
+stress-free geometry -> predict every position -> metrics -> report. Writes
+``DIR/metrics.json`` (per position: modified Hausdorff distance, Hausdorff, RMSE, p95 of
+node-to-surface distances on the skin, per skin region, landmark errors where
+``landmarks.csv`` exists), ``DIR/<position>_predicted.ply`` (reference frame),
+``DIR/params.json``, ``DIR/report.html``, ``DIR/stages.json`` and the resolved config.
 Stages are cached in ``DIR/cache`` by a hash of their inputs and settings: a rerun skips what
 is done, a killed run resumes, a changed parameter recomputes only what depends on it.
 See ``examples/run.toml`` for the config.

@@ -1,7 +1,8 @@
 """The subject pipeline: cached stages, fitting, sweeps, metrics and the report.
 
-- :func:`run_subject` (``breastmodel run``): segment -> register -> mesh + measured skins ->
-  [fit] -> stress-free geometry -> predict and score every position -> outputs.
+- :func:`run_subject` (``breastmodel run``): segment -> register -> measured skins, and the
+  reference's mesh beside them -> [fit] -> stress-free geometry -> predict and score every
+  position -> outputs.
 - :func:`prepare_subject`: the stages up to the problem folder (what fit and sweep need).
 - :func:`evaluate_params` / :func:`sweep_point`: the picklable objective.
 - :func:`fit_parameters`, :func:`grid_search`, :func:`optimise`, :func:`sensitivity`.

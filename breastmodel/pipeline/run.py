@@ -1,8 +1,10 @@
 """``run_subject``: the cached subject pipeline.
 
-segment (per position) -> register -> mesh + measured skins (the *problem*) -> [fit] ->
-stress-free geometry -> predict + score (per position) -> outputs (metrics.json,
-``<position>_predicted.ply``, params.json, report.html).
+segment (per position) -> register -> measured skins, and the reference's mesh -> the
+*problem* (mesh, skins, gravity, landmarks) -> [fit] -> stress-free geometry -> predict +
+score (per position) -> outputs (metrics.json, ``<position>_predicted.ply``, params.json,
+report.html). The mesh needs only the reference's segmentation: on an adult volume it runs
+in a worker process beside the other positions' segmentation and the registration.
 
 Every stage is a :class:`breastmodel.cache.Cache` stage under ``OUT/cache/`` keyed by the
 hash of its own settings and its inputs (files by content, upstream stages by key): a rerun
@@ -10,22 +12,22 @@ skips what is done, a killed run resumes at the stage it was in, and a changed m
 parameter recomputes only the stress-free geometry, the predictions and the outputs.
 
 The stage log is :class:`breastmodel.pipeline.runner.Runner`; the bodies of the subject
-stages (segment, register, problem) are here, those of the model stages in
+stages (segment, register, skins, mesh, problem) are in
+:mod:`breastmodel.pipeline.subject_stages`, those of the model stages in
 :mod:`breastmodel.pipeline.model_stages`.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import shutil
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from breastmodel.errors import StageError
 from breastmodel.pipeline.model_stages import (
@@ -36,67 +38,19 @@ from breastmodel.pipeline.model_stages import (
     stress_free_stage,
 )
 from breastmodel.pipeline.runner import Prepared, Runner, RunResult
-from imaging.labels import BREAST, BREAST_TISSUE, MUSCLE
+from breastmodel.pipeline.subject_stages import (
+    mesh_options,
+    mesh_stage,
+    problem_stage,
+    register_stage,
+    segment_stage,
+    skins_stage,
+)
 
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["Prepared", "RunResult", "cache_of", "prepare_subject", "run_problem", "run_subject"]
 
-
-# ---------------------------------------------------------------- stage bodies
-
-
-def _segment(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path], None]:
-    def fn(d: Path) -> None:
-        import SimpleITK as sitk
-
-        from breastmodel.pipeline.segment import segment_position
-        from imaging.io import read_volume, write_volume
-
-        vol = subject.positions[position].volume_path
-        seg = dict(cfg["segment"])
-        given = seg.pop("labels", None)
-        if given:
-            src = Path(given) / f"{position}_labels.nii.gz"
-            if not src.is_file():
-                raise StageError("segment", f"[segment] labels = {given!r} has no label map "
-                                 f"for position {position!r}", src)
-            labels = read_volume(src)
-            write_volume(labels, d / f"{position}_labels.nii.gz")
-        else:
-            try:
-                segment_position(subject, position, d, preprocess_options=cfg["preprocess"],
-                                 segment_options=seg)
-            except ValueError as exc:
-                raise StageError("segment", str(exc), vol) from None
-            labels = read_volume(d / f"{position}_labels.nii.gz")
-        a = sitk.GetArrayViewFromImage(labels)
-        if not np.isin(a, BREAST_TISSUE).any():
-            raise StageError("segment", f"position {position!r}: the segmentation has no "
-                             f"breast tissue (label {BREAST})", vol)
-        if not (a == MUSCLE).any():
-            raise StageError("segment", f"position {position!r}: the segmentation has no "
-                             f"muscle / chest wall (label {MUSCLE})", vol)
-    return fn
-
-
-def _register(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
-    def fn(d: Path) -> None:
-        from breastmodel.pipeline.register import register_subject
-
-        labels = d / "labels_in"
-        labels.mkdir()
-        for pos, folder in seg_dirs.items():
-            shutil.copy2(folder / f"{pos}_labels.nii.gz", labels / f"{pos}_labels.nii.gz")
-        try:
-            # the subject as read once by the run, the [register] table as a value
-            register_subject(subject, d, seg_dir=labels, config=cfg["register"])
-        except StageError:
-            raise
-        except (ValueError, RuntimeError) as exc:
-            raise StageError("register", str(exc), subject.root) from None
-        shutil.rmtree(labels)
-    return fn
 
 
 def cache_of(run_dir: str | Path) -> Path:
@@ -108,60 +62,6 @@ def cache_of(run_dir: str | Path) -> Path:
         if c:
             return Path(c)
     return run_dir / "cache"
-
-
-def _problem(subject, reg_dir: Path, cfg: Mapping[str, Any]):
-    def fn(d: Path) -> None:
-        import SimpleITK as sitk
-
-        from breastmodel.config import write_json
-        from mechanics.threads import resolve_threads
-        from meshing import mesh_labels
-        from meshing.sizing import mesh_size
-        from meshing.surface import skin_surfaces
-        from registration.transforms import read_transform, transform_points
-
-        ref = subject.reference
-        ref_labels = sitk.ReadImage(str(reg_dir / "reference_labels.nii.gz"))
-        m = cfg["mesh"]
-        positions = list(subject.positions)
-        paths = [reg_dir / ("reference_labels.nii.gz" if pos == ref
-                            else f"{pos}_labels_in_reference.nii.gz") for pos in positions]
-        cores = resolve_threads(None)
-        # the measured skins (worker processes on an adult volume) beside the tet mesh
-        with skin_surfaces(paths, target_edge_mm=float(cfg["surface"]["edge_mm"]),
-                           workers=cores) as skins:
-            try:
-                size, why = mesh_size(m["size_mm"], ref_labels)
-                log.info("mesh: %g mm (%s)", size, why)
-                mesh = mesh_labels(ref_labels, size_mm=size, keep_gland=bool(m["keep_gland"]),
-                                   threads=int(m["threads"]) or cores)
-            except (ValueError, RuntimeError) as exc:
-                raise StageError("mesh", str(exc),
-                                 reg_dir / "reference_labels.nii.gz") from None
-            mesh.save_npz(d / "mesh.npz")
-            for pos, path in zip(positions, paths, strict=True):
-                try:
-                    v, f = next(skins)
-                except (ValueError, RuntimeError) as exc:
-                    raise StageError("surface", f"position {pos!r}: {exc}", path) from None
-                np.savez(d / f"{pos}_skin.npz", vertices=v, triangles=f)
-        gravity = json.loads((reg_dir / "gravity.json").read_text())
-        landmarks = {}
-        for pos, pts in (subject.landmarks or {}).items():
-            if pos not in gravity or not pts:
-                continue
-            names = sorted(pts)
-            p = np.array([pts[k] for k in names], float)
-            if pos != ref:  # reference -> position image; its inverse brings them home
-                tfm = read_transform(reg_dir / f"{pos}.tfm")
-                p = transform_points(tfm.GetInverse(), p)
-            landmarks[pos] = {k: v.tolist() for k, v in zip(names, p)}
-        write_json(d / "problem.json", {"reference": ref, "gravity": gravity,
-                                        "landmarks": landmarks,
-                                        "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets,
-                                        "mesh_size_mm": size, "mesh_size": why})
-    return fn
 
 
 # ---------------------------------------------------------------- the pipeline
@@ -200,6 +100,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     from breastmodel.config import write_provenance
     from imaging.markups import markups_files
     from imaging.subject import SubjectError, read_subject
+    from meshing.background import mesh_in_background
 
     out = Path(out)
     try:
@@ -212,31 +113,45 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     R = Runner(out, progress, cache)
 
     seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
-    seg_dirs, seg_keys = {}, []
-    for pos in positions:
-        vol = subject.positions[pos].volume_path
-        inputs: list = [vol]
-        given = cfg["segment"].get("labels")
-        if given:
-            src = Path(given) / f"{pos}_labels.nii.gz"
-            inputs = [src] if src.is_file() else [vol]
-        d, k = R.stage("segment", {**seg_cfg, "position": pos}, inputs,
-                       _segment(subject, pos, seg_cfg), label=f"segment {pos}")
-        seg_dirs[pos] = d
-        seg_keys.append(k)
-    sub_files = [subject.root / "subject.toml"] + [
-        subject.positions[p].volume_path for p in positions]
-    if (subject.root / "fiducials.csv").is_file():
-        sub_files.append(subject.root / "fiducials.csv")
-    sub_files += markups_files(subject.root, positions)
-    reg_dir, reg_key = R.stage("register", {"register": cfg["register"]},
-                               [*seg_keys, *sub_files], _register(subject, seg_dirs, cfg))
+    ref, mesh_cfg = subject.reference, {"mesh": cfg["mesh"]}
+    seg_dirs, seg_keys, job = {}, {}, None
+    with contextlib.ExitStack() as background:
+        # the reference first: its mesh runs beside the other positions' segmentation and
+        # the registration (a worker process on an adult volume)
+        for pos in [ref, *(p for p in positions if p != ref)]:
+            seg_dirs[pos], seg_keys[pos] = R.stage(
+                "segment", {**seg_cfg, "position": pos}, _segment_inputs(subject, pos, cfg),
+                segment_stage(subject, pos, seg_cfg), label=f"segment {pos}")
+            if pos == ref and not R.done("mesh", mesh_cfg, [seg_keys[ref]]):
+                job = background.enter_context(mesh_in_background(
+                    seg_dirs[ref] / f"{ref}_labels.nii.gz", **mesh_options(cfg)))
+        sub_files = [subject.root / "subject.toml"] + [
+            subject.positions[p].volume_path for p in positions]
+        if (subject.root / "fiducials.csv").is_file():
+            sub_files.append(subject.root / "fiducials.csv")
+        sub_files += markups_files(subject.root, positions)
+        reg_dir, reg_key = R.stage("register", {"register": cfg["register"]},
+                                   [*(seg_keys[p] for p in positions), *sub_files],
+                                   register_stage(subject, seg_dirs, cfg))
+        skins_dir, skins_key = R.stage("skins", {"surface": cfg["surface"]}, [reg_key],
+                                       skins_stage(subject, reg_dir, cfg), label="measured skins")
+        mesh_dir, mesh_key = R.stage("mesh", mesh_cfg, [seg_keys[ref]],
+                                     mesh_stage(seg_dirs[ref] / f"{ref}_labels.nii.gz",
+                                                mesh_options(cfg), job),
+                                     label=f"mesh {ref}")
     lm = [subject.root / "landmarks.csv"] if (subject.root / "landmarks.csv").is_file() else []
-    prob_dir, prob_key = R.stage("problem", {"mesh": cfg["mesh"], "surface": cfg["surface"]},
-                                 [reg_key, *lm], _problem(subject, reg_dir, cfg),
-                                 label="mesh + measured skins")
-    return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs,
-                    (reg_key, *lm))
+    inputs = (reg_key, skins_key, *lm)
+    prob_dir, prob_key = R.stage("problem", {}, [mesh_key, *inputs],
+                                 problem_stage(subject, reg_dir, mesh_dir, skins_dir))
+    return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs, inputs,
+                    seg_keys)
+
+
+def _segment_inputs(subject, pos: str, cfg: Mapping[str, Any]) -> list:
+    """What a position's segmentation is keyed on: its volume, or its given label map."""
+    given = cfg["segment"].get("labels")
+    src = Path(given) / f"{pos}_labels.nii.gz" if given else None
+    return [src] if src is not None and src.is_file() else [subject.positions[pos].volume_path]
 
 
 def run_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | Path, *,
@@ -308,10 +223,16 @@ def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str
     meta = json.loads((prep.problem_dir / "problem.json").read_text())
     R, h = prep.runner, float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
     fine = {**cfg, "mesh": {**cfg["mesh"], "size_mm": h / 2}}
-    prob_dir, prob_key = R.stage("problem", {"mesh": fine["mesh"], "surface": cfg["surface"]},
-                                 list(prep.problem_inputs),
-                                 _problem(prep.subject, prep.register_dir, fine),
+    ref = prep.subject.reference
+    labels = prep.segment_dirs[ref] / f"{ref}_labels.nii.gz"
+    mesh_dir, mesh_key = R.stage("mesh", {"mesh": fine["mesh"]}, [prep.segment_keys[ref]],
+                                 mesh_stage(labels, mesh_options(fine)),
                                  label=f"refinement: mesh {h / 2:g} mm")
+    # the measured skins are the default problem's (they do not depend on the mesh)
+    prob_dir, prob_key = R.stage("problem", {}, [mesh_key, *prep.problem_inputs],
+                                 problem_stage(prep.subject, prep.register_dir, mesh_dir,
+                                               prep.problem_dir),
+                                 label=f"refinement: problem {h / 2:g} mm")
     sf_dir, sf_key = R.stage("stress_free", {"model": model, "stress_free": cfg["stress_free"],
                                              "solver": cfg["solver"]}, [prob_key],
                              stress_free_stage(prob_dir, cfg, model, R.progress),

@@ -23,8 +23,8 @@ class RunResult(dict):
 @dataclass(frozen=True, eq=False)
 class Prepared:
     """subject, positions (names), runner (stage log), problem_dir, problem_key, and the
-    stage folders of the images (``register_dir``, ``segment_dirs`` {position: folder};
-    None for a given problem)."""
+    stage folders and keys of the images (``register_dir``, ``segment_dirs`` and
+    ``segment_keys`` {position: folder or key}; None for a given problem)."""
 
     subject: Any
     positions: list[str]
@@ -33,7 +33,8 @@ class Prepared:
     problem_key: str
     register_dir: Path | None = None
     segment_dirs: Mapping[str, Path] | None = None
-    problem_inputs: tuple = ()  # what the problem stage was keyed on (registration, landmarks)
+    problem_inputs: tuple = ()  # the problem's inputs but the mesh (registration, skins, ...)
+    segment_keys: Mapping[str, str] | None = None
 
 
 class Runner:
@@ -46,6 +47,10 @@ class Runner:
         self.cache = Cache(self.cache_root)
         self.stages: list[dict] = []
         self.progress = progress
+
+    def done(self, name: str, config: Mapping[str, Any], inputs) -> bool:
+        """Whether the stage ``name`` keyed by ``config`` and ``inputs`` is in the cache."""
+        return self.cache.done(name, stage_key(name, config, inputs))
 
     def stage(self, name: str, config: Mapping[str, Any], inputs, fn: Callable[[Path], None],
               *, label: str | None = None) -> tuple[Path, StageKey]:

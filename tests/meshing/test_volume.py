@@ -226,3 +226,40 @@ def test_tets_hanging_by_an_edge_or_a_vertex_are_not_the_main_body():
     tets = np.vstack([tets, on_edge, on_vertex])
     body = _main_body(tets)
     assert np.flatnonzero(~body).tolist() == [len(tets) - 2, len(tets) - 1]
+
+
+def test_mesh_made_in_a_worker_process_equals_the_one_made_here(boxes, tmp_path, monkeypatch):
+    """The pipeline meshes an adult reference in a ``python -m meshing.background`` worker
+    beside its other stages: the same mesh, bit for bit; a worker's error is raised when the
+    result is taken; leaving the context stops a worker still running."""
+    from pathlib import Path
+
+    import SimpleITK as sitk
+
+    from meshing import surface
+    from meshing.background import mesh_in_background
+
+    labels, here = boxes
+    path = tmp_path / "labels.nii.gz"
+    sitk.WriteImage(labels, str(path))
+    monkeypatch.setattr(surface, "PARALLEL_VOXELS", 0)
+    with mesh_in_background(path, size_mm=H) as job:
+        assert job.proc is not None  # the worker, not this process
+        mesh, size, why = job.result()
+    assert (size, why) == (H, "given")
+    for key in ("nodes", "tets", "region"):
+        assert np.array_equal(getattr(mesh, key), getattr(here, key))
+    for kind in ("node_sets", "face_sets", "node_pairs"):
+        got, want = getattr(mesh, kind), getattr(here, kind)
+        assert got.keys() == want.keys()
+        assert all(np.array_equal(got[k], want[k]) for k in want)
+    empty = sitk.GetImageFromArray(np.zeros(sitk.GetArrayViewFromImage(labels).shape, np.uint8))
+    empty.CopyInformation(labels)
+    sitk.WriteImage(empty, str(tmp_path / "empty.nii.gz"))
+    with mesh_in_background(tmp_path / "empty.nii.gz", size_mm=H) as job:
+        with pytest.raises(ValueError, match="breast"):
+            job.result()
+    with mesh_in_background(path, size_mm=H) as job:
+        proc, folder = job.proc, job.tmp.name
+    assert proc.poll() is not None  # stopped (or finished) with the context
+    assert not Path(folder).exists()

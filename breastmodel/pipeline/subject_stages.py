@@ -1,0 +1,172 @@
+"""Stage bodies of the subject half of the pipeline: segment one position, register, mesh
+the reference, extract the measured skins and assemble the *problem* folder (mesh, measured
+skins, gravity, landmarks: :mod:`breastmodel.pipeline.problem`); each returns the function
+that fills its stage folder.
+
+The mesh needs only the reference's label map, so :func:`breastmodel.pipeline.run
+.prepare_subject` starts it (:class:`meshing.background.mesh_in_background`) as soon as the
+reference is segmented and segments and registers the other positions beside it."""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.errors import StageError
+from imaging.labels import BREAST, BREAST_TISSUE, MUSCLE
+
+log = logging.getLogger("breastmodel.pipeline")
+
+__all__ = ["mesh_options", "mesh_stage", "problem_stage", "register_stage", "segment_stage",
+           "skins_stage"]
+
+
+def segment_stage(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path], None]:
+    """The label map of one position (``<position>_labels.nii.gz``): segmented, or copied
+    from ``[segment] labels``; it must hold breast tissue and muscle."""
+
+    def fn(d: Path) -> None:
+        import SimpleITK as sitk
+
+        from breastmodel.pipeline.segment import segment_position
+        from imaging.io import read_volume, write_volume
+
+        vol = subject.positions[position].volume_path
+        seg = dict(cfg["segment"])
+        given = seg.pop("labels", None)
+        if given:
+            src = Path(given) / f"{position}_labels.nii.gz"
+            if not src.is_file():
+                raise StageError("segment", f"[segment] labels = {given!r} has no label map "
+                                 f"for position {position!r}", src)
+            labels = read_volume(src)
+            write_volume(labels, d / f"{position}_labels.nii.gz")
+        else:
+            try:
+                segment_position(subject, position, d, preprocess_options=cfg["preprocess"],
+                                 segment_options=seg)
+            except ValueError as exc:
+                raise StageError("segment", str(exc), vol) from None
+            labels = read_volume(d / f"{position}_labels.nii.gz")
+        a = sitk.GetArrayViewFromImage(labels)
+        if not np.isin(a, BREAST_TISSUE).any():
+            raise StageError("segment", f"position {position!r}: the segmentation has no "
+                             f"breast tissue (label {BREAST})", vol)
+        if not (a == MUSCLE).any():
+            raise StageError("segment", f"position {position!r}: the segmentation has no "
+                             f"muscle / chest wall (label {MUSCLE})", vol)
+    return fn
+
+
+
+def register_stage(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]):
+    """Every position registered onto the reference (:func:`breastmodel.pipeline.register
+    .register_subject`): transforms, gravity, the label maps in the reference frame."""
+
+    def fn(d: Path) -> None:
+        from breastmodel.pipeline.register import register_subject
+
+        labels = d / "labels_in"
+        labels.mkdir()
+        for pos, folder in seg_dirs.items():
+            shutil.copy2(folder / f"{pos}_labels.nii.gz", labels / f"{pos}_labels.nii.gz")
+        try:
+            # the subject as read once by the run, the [register] table as a value
+            register_subject(subject, d, seg_dir=labels, config=cfg["register"])
+        except StageError:
+            raise
+        except (ValueError, RuntimeError) as exc:
+            raise StageError("register", str(exc), subject.root) from None
+        shutil.rmtree(labels)
+    return fn
+
+
+
+
+def mesh_stage(labels: Path, options: Mapping[str, Any], job=None) -> Callable[[Path], None]:
+    """The tet mesh of the reference's label map ``labels`` (``mesh.npz``, ``mesh.json``:
+    size and how it was chosen, counts), from ``job`` (a started
+    :class:`meshing.background.mesh_in_background`) or made now; ``options`` is the
+    ``[mesh]`` table with ``threads`` resolved."""
+
+    def fn(d: Path) -> None:
+        from breastmodel.config import write_json
+        from meshing.background import mesh_in_background
+
+        work = job or mesh_in_background(labels, background=False, **options)
+        try:
+            mesh, size, why = work.result()
+        except (ValueError, RuntimeError) as exc:
+            raise StageError("mesh", str(exc), labels) from None
+        mesh.save_npz(d / "mesh.npz")
+        write_json(d / "mesh.json", {"mesh_size_mm": size, "mesh_size": why,
+                                     "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets})
+    return fn
+
+
+def mesh_options(cfg: Mapping[str, Any]) -> dict:
+    """The ``[mesh]`` table as :func:`meshing.background.mesh_label_file` takes it (threads
+    0: the run's cores)."""
+    from mechanics.threads import resolve_threads
+
+    m = cfg["mesh"]
+    return {"size_mm": m["size_mm"], "keep_gland": bool(m["keep_gland"]),
+            "threads": int(m["threads"]) or resolve_threads(None)}
+
+
+def skins_stage(subject, reg_dir: Path, cfg: Mapping[str, Any]) -> Callable[[Path], None]:
+    """The measured skin of every position in the reference frame (``<position>_skin.npz``),
+    from the registered label maps; worker processes on an adult volume."""
+
+    def fn(d: Path) -> None:
+        from mechanics.threads import resolve_threads
+        from meshing.surface import skin_surfaces
+
+        positions = list(subject.positions)
+        paths = [reg_dir / ("reference_labels.nii.gz" if pos == subject.reference
+                            else f"{pos}_labels_in_reference.nii.gz") for pos in positions]
+        with skin_surfaces(paths, target_edge_mm=float(cfg["surface"]["edge_mm"]),
+                           workers=resolve_threads(None)) as skins:
+            for pos, path in zip(positions, paths, strict=True):
+                try:
+                    v, f = next(skins)
+                except (ValueError, RuntimeError) as exc:
+                    raise StageError("surface", f"position {pos!r}: {exc}", path) from None
+                np.savez(d / f"{pos}_skin.npz", vertices=v, triangles=f)
+    return fn
+
+
+def problem_stage(subject, reg_dir: Path, mesh_dir: Path,
+                  skins_dir: Path) -> Callable[[Path], None]:
+    """The problem folder: the mesh and measured skins copied from their stages, and
+    ``problem.json`` (reference, gravity, landmarks in the reference frame, mesh size)."""
+
+    def fn(d: Path) -> None:
+        from breastmodel.config import write_json
+        from registration.transforms import read_transform, transform_points
+
+        shutil.copyfile(mesh_dir / "mesh.npz", d / "mesh.npz")
+        for pos in subject.positions:
+            shutil.copyfile(skins_dir / f"{pos}_skin.npz", d / f"{pos}_skin.npz")
+        ref = subject.reference
+        gravity = json.loads((reg_dir / "gravity.json").read_text())
+        landmarks = {}
+        for pos, pts in (subject.landmarks or {}).items():
+            if pos not in gravity or not pts:
+                continue
+            names = sorted(pts)
+            p = np.array([pts[k] for k in names], float)
+            if pos != ref:  # reference -> position image; its inverse brings them home
+                tfm = read_transform(reg_dir / f"{pos}.tfm")
+                p = transform_points(tfm.GetInverse(), p)
+            landmarks[pos] = {k: v.tolist() for k, v in zip(names, p)}
+        write_json(d / "problem.json", {"reference": ref, "gravity": gravity,
+                                        "landmarks": landmarks,
+                                        **json.loads((mesh_dir / "mesh.json").read_text())})
+    return fn
