@@ -151,8 +151,9 @@ PARALLEL_VOXELS = 4_000_000
 class skin_surfaces:
     """:func:`skin_surface` of each label-map file, in order (``next``), on up to ``workers``
     processes at once when the first map has at least :data:`PARALLEL_VOXELS` voxels; a
-    context manager. The processes start at once, so the caller's own work (the pipeline's
-    tet mesh, one core for most of its two minutes) runs beside them.
+    context manager. The processes start at once, so the caller's own work runs beside them
+    (the pipeline's tet mesh, one core for most of its two minutes, runs in a worker of its
+    own: :mod:`meshing.background`).
 
     On an adult volume (320 x 180 x 200 voxels of 1 mm) one skin is 20 s, 16 of them
     pymeshlab's remeshing, so a subject's three positions took 60 s one after the other.
