@@ -27,6 +27,8 @@ import numpy as np
 
 __all__ = [
     "TriangleSurface",
+    "boundary_distance",
+    "boundary_edges",
     "closest_point_on_triangles",
     "is_closed",
     "point_to_surface",
@@ -130,6 +132,36 @@ def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
         best = np.argmin(dists, axis=0)
         out[idx] = np.stack(cands)[best, np.arange(len(idx))]
     return out
+
+
+def boundary_edges(triangles) -> np.ndarray:
+    """(b, 2) vertex pairs of the edges that belong to one triangle only (the rim of an open
+    surface; none for a closed one)."""
+    t = np.asarray(triangles, dtype=np.int64)
+    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+    codes = edges[:, 0] * (int(t.max()) + 1) + edges[:, 1]
+    _, first, counts = np.unique(codes, return_index=True, return_counts=True)
+    return edges[first[counts == 1]]
+
+
+def boundary_distance(vertices, triangles, points, *, spacing_mm: float = 0.25) -> np.ndarray:
+    """Distance (mm) from each point to the rim of an open triangle surface (its boundary
+    edges), to within ``spacing_mm / 2`` (the rim is sampled every ``spacing_mm``); infinite
+    for a closed surface. Used to fade out the fit's residuals whose closest point lies on
+    the rim, where the sign of a point-to-surface distance is not defined."""
+    from scipy.spatial import cKDTree
+
+    v = _as_points(vertices, "vertices")
+    p = _as_points(points, "query points")
+    e = boundary_edges(_as_triangles(triangles, len(v)))
+    if len(e) == 0:
+        return np.full(len(p), np.inf)
+    a, b = v[e[:, 0]], v[e[:, 1]]
+    n = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / spacing_mm).astype(int), 1)
+    k = np.repeat(np.arange(len(e)), n)
+    t = (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)) / np.repeat(n, n)
+    samples = np.concatenate([a[k] + t[:, None] * (b - a)[k], b])
+    return cKDTree(samples).query(p)[0]
 
 
 def _closest_on_segment(p, s, e):

@@ -181,14 +181,15 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
                   work_dir: Path, progress: bool = False,
                   x0: Mapping[str, float] | None = None, warm: list | bool = True) -> dict:
     """Bounded trust-region least squares (scipy ``least_squares``, "trf") on the signed
-    node-to-surface errors of the calibration positions, in log-parameter space.
+    node-to-surface errors of the calibration positions (faded to 0 at the measured skin's
+    rim: :func:`breastmodel.pipeline.problem.skin_residual`), in log-parameter space.
 
     Uses the residual vector rather than its MHD summary, so each iteration gains from every
     skin node: a few parameters converge in a few tens of evaluations (forward-difference
     Jacobian with 5 % log steps, counted in ``budget``). The best evaluation by the objective
     (mean MHD) is returned, as for :func:`optimise` (often a Jacobian probe beside the
     least-squares optimum, where the uncertainty is computed: on the suite's small-000
-    1.051 against 0.973 kPa, truth 0.94), with scipy's ``termination`` message;
+    1.054 against 1.003 kPa, truth 0.94), with scipy's ``termination`` message;
     evaluations are stored in ``work_dir/least_squares`` and replayed on resume; ``warm`` as
     for :func:`optimise`.
     """

@@ -234,8 +234,9 @@ def test_identifiability_names_the_pairs_the_data_cannot_separate():
 
 def _cube_problem():
     """Unit-cube-like block of 5 tets (10 mm), skin = its top face (z = 10), a landmark
-    inside; the measured skin is the top face lifted by 1 mm, the measured landmark moved
-    by (0, 0, 2) mm in 'prone'."""
+    inside; the measured skin is the plane of the top face lifted by 1 mm, reaching 10 mm
+    beyond it on every side (so that no skin node's closest point lies near its rim, where
+    the fit's residual fades), the measured landmark moved by (0, 0, 2) mm in 'prone'."""
     from breastmodel.pipeline.problem import Problem
     from mechanics.mesh import Mesh
 
@@ -245,7 +246,8 @@ def _cube_problem():
     top = np.array([[4, 5, 7], [4, 7, 6]])
     mesh = Mesh(nodes=nodes, tets=tets, region=np.ones(5, np.int32),
                 face_sets={"skin": top}, node_sets={"fixed": np.arange(4)})
-    measured = (nodes[4:] + [0.0, 0.0, 1.0], np.array([[0, 1, 3], [0, 3, 2]]))
+    patch = np.array([[-10.0, -10.0], [20.0, -10.0], [-10.0, 20.0], [20.0, 20.0]])
+    measured = (np.column_stack([patch, np.full(4, 11.0)]), np.array([[0, 1, 3], [0, 3, 2]]))
     lm = {"supine": {"a": np.array([5.0, 5.0, 5.0])},
           "prone": {"a": np.array([5.0, 5.0, 7.0])}}
     return Problem(mesh, {"prone": np.array([0, 0, -1.0]), "supine": np.array([0, 1.0, 0])},
@@ -279,3 +281,29 @@ def test_sees_is_checked_with_the_config():
     with pytest.raises(ConfigError, match="sees"):
         resolve_config({"fit": {"sees": []}})
     assert resolve_config({})["fit"]["sees"] == ["skin"]
+
+
+def test_skin_residual_is_continuous_where_the_closest_point_is_on_the_measured_rim():
+    """A measured skin is an open patch; a node beyond its rim has no defined side, and its
+    signed distance flips with the nearest rim triangle (on a full-size suite subject such
+    nodes jumped by up to 18 mm between two fit evaluations 5 % apart and stalled the least
+    squares). The fit's residual fades to 0 on the rim: continuous, full away from it."""
+    from breastmodel.evaluation import point_to_surface
+    from breastmodel.pipeline.problem import RIM_FADE_MM, skin_residual
+
+    # a 40 x 40 mm flat patch in z = 0, normals +z, 2 mm triangles
+    n = 21
+    g = np.linspace(0.0, 40.0, n)
+    V = np.array([[x, y, 0.0] for y in g for x in g])
+    q = [(i + n * j, i + 1 + n * j, i + 1 + n * (j + 1), i + n * (j + 1))
+         for j in range(n - 1) for i in range(n - 1)]
+    F = np.array([t for a, b, c, d in q for t in ((a, b, c), (a, c, d))])
+    # beyond the rim at x = 40, a hair above and below the patch's plane: 6 mm away both
+    beyond = np.array([[46.0, 20.0, 0.01], [46.0, 20.0, -0.01]])
+    signed, _ = point_to_surface(beyond, V, F, signed=True)
+    assert signed[0] * signed[1] < 0 and abs(signed[0] - signed[1]) > 11.9  # the flip
+    assert np.allclose(skin_residual(beyond, V, F), 0.0)
+    # above the interior: the signed distance, faded over RIM_FADE_MM from the rim
+    inside = np.array([[20.0, 20.0, 3.0], [20.0, 20.0, -3.0],
+                       [40.0 - RIM_FADE_MM / 2, 20.0, 3.0]])
+    assert np.allclose(skin_residual(inside, V, F), [3.0, -3.0, 1.5], atol=0.05 * 3.0)
