@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import logging
 import shutil
 import time
 from collections.abc import Mapping
@@ -46,8 +45,6 @@ from breastmodel.pipeline.subject_stages import (
     segment_stage,
     skins_stage,
 )
-
-log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["Prepared", "RunResult", "cache_of", "prepare_subject", "run_problem", "run_subject"]
 

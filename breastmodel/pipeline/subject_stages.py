@@ -10,7 +10,6 @@ reference is segmented and segments and registers the other positions beside it.
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -20,8 +19,6 @@ import numpy as np
 
 from breastmodel.errors import StageError
 from imaging.labels import BREAST, BREAST_TISSUE, MUSCLE
-
-log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["mesh_options", "mesh_stage", "problem_stage", "register_stage", "segment_stage",
            "skins_stage"]
