@@ -63,7 +63,8 @@ needs only the reference's label map, so it is made in a worker process
 (``meshing.background``) from the moment the reference is segmented, while the other
 positions are segmented and registered and the measured skins made; its stage's time below is
 the wait for it after the skins. Same mesh and skins byte for byte, same MHDs (3.226 / 0.420
-/ 2.201 mm). Measured 2026-11-26, quiet machine, one run:
+/ 2.201 mm). Measured 2026-11-26, quiet machine, one run (before the fit's residual was
+faded at the measured rim; that change is measured on ``--suite 0`` below):
 
 stage                          before (last column above)   mesh in a worker
 segment (3 positions)                  62.3                       57.5
