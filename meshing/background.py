@@ -19,7 +19,6 @@ import tempfile
 import warnings
 from pathlib import Path
 
-import numpy as np
 import SimpleITK as sitk
 
 from mechanics.mesh import Mesh
@@ -54,18 +53,13 @@ class mesh_in_background:
 
     def __init__(self, path: str | Path, *, size_mm, keep_gland: bool = False,
                  threads: int = 1, background: bool = True):
-        from meshing import surface
+        from meshing.surface import worth_a_worker
 
         self.path = str(path)
         self.options = {"size_mm": size_mm, "keep_gland": bool(keep_gland),
                         "threads": int(threads)}
         self.proc = None
-        if background:
-            reader = sitk.ImageFileReader()
-            reader.SetFileName(self.path)
-            reader.ReadImageInformation()
-            background = int(np.prod(reader.GetSize())) >= surface.PARALLEL_VOXELS
-        if background:
+        if background and worth_a_worker(self.path):
             self.tmp = tempfile.TemporaryDirectory(prefix="mesh_labels_")
             self.out = Path(self.tmp.name) / "result.json"
             self.proc = start_module("meshing.background",

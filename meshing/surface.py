@@ -148,6 +148,15 @@ def skin_surface(
 PARALLEL_VOXELS = 4_000_000
 
 
+def worth_a_worker(path) -> bool:
+    """Whether the label map in ``path`` has at least :data:`PARALLEL_VOXELS` voxels (its
+    header only is read)."""
+    reader = sitk.ImageFileReader()
+    reader.SetFileName(str(path))
+    reader.ReadImageInformation()
+    return int(np.prod(reader.GetSize())) >= PARALLEL_VOXELS
+
+
 class skin_surfaces:
     """:func:`skin_surface` of each label-map file, in order (``next``), on up to ``workers``
     processes at once when the first map has at least :data:`PARALLEL_VOXELS` voxels; a
@@ -170,13 +179,7 @@ class skin_surfaces:
         self.edge = float(target_edge_mm)
         self.next_index = 0
         self.jobs = None
-        big = False
-        if workers > 1 and len(self.paths) > 1:
-            reader = sitk.ImageFileReader()
-            reader.SetFileName(self.paths[0])
-            reader.ReadImageInformation()
-            big = int(np.prod(reader.GetSize())) >= PARALLEL_VOXELS
-        if big:
+        if workers > 1 and len(self.paths) > 1 and worth_a_worker(self.paths[0]):
             import tempfile
             from concurrent.futures import ThreadPoolExecutor
 

@@ -69,11 +69,18 @@ def is_closed(triangles) -> bool:
     -------
     bool
     """
+    _, counts = _edge_counts(triangles)
+    return bool(np.all(counts == 2))
+
+
+def _edge_counts(triangles) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct edges (e, 2) of a triangle mesh, vertex pairs sorted, and how many
+    triangles hold each."""
     t = np.asarray(triangles, dtype=np.int64)
     edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
     codes = edges[:, 0] * (int(t.max()) + 1) + edges[:, 1]  # 1-D: np.unique(axis=0) is slow
-    _, counts = np.unique(codes, return_counts=True)
-    return bool(np.all(counts == 2))
+    _, first, counts = np.unique(codes, return_index=True, return_counts=True)
+    return edges[first], counts
 
 
 def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
@@ -137,11 +144,8 @@ def closest_point_on_triangles(p, a, b, c) -> np.ndarray:
 def boundary_edges(triangles) -> np.ndarray:
     """(b, 2) vertex pairs of the edges that belong to one triangle only (the rim of an open
     surface; none for a closed one)."""
-    t = np.asarray(triangles, dtype=np.int64)
-    edges = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
-    codes = edges[:, 0] * (int(t.max()) + 1) + edges[:, 1]
-    _, first, counts = np.unique(codes, return_index=True, return_counts=True)
-    return edges[first[counts == 1]]
+    edges, counts = _edge_counts(triangles)
+    return edges[counts == 1]
 
 
 def boundary_distance(vertices, triangles, points, *, spacing_mm: float = 0.25) -> np.ndarray:

@@ -121,7 +121,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
                 segment_stage(subject, pos, seg_cfg), label=f"segment {pos}")
             if pos == ref and not R.done("mesh", mesh_cfg, [seg_keys[ref]]):
                 job = background.enter_context(mesh_in_background(
-                    seg_dirs[ref] / f"{ref}_labels.nii.gz", **mesh_options(cfg)))
+                    _labels(seg_dirs, ref), **mesh_options(cfg)))
         sub_files = [subject.root / "subject.toml"] + [
             subject.positions[p].volume_path for p in positions]
         if (subject.root / "fiducials.csv").is_file():
@@ -133,8 +133,8 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
         skins_dir, skins_key = R.stage("skins", {"surface": cfg["surface"]}, [reg_key],
                                        skins_stage(subject, reg_dir, cfg), label="measured skins")
         mesh_dir, mesh_key = R.stage("mesh", mesh_cfg, [seg_keys[ref]],
-                                     mesh_stage(seg_dirs[ref] / f"{ref}_labels.nii.gz",
-                                                mesh_options(cfg), job),
+                                     mesh_stage(_labels(seg_dirs, ref), mesh_options(cfg),
+                                                job),
                                      label=f"mesh {ref}")
     lm = [subject.root / "landmarks.csv"] if (subject.root / "landmarks.csv").is_file() else []
     inputs = (reg_key, skins_key, *lm)
@@ -142,6 +142,11 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
                                  problem_stage(subject, reg_dir, mesh_dir, skins_dir))
     return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs, inputs,
                     seg_keys)
+
+
+def _labels(seg_dirs: Mapping[str, Path], pos: str) -> Path:
+    """A position's label map in its segmentation stage."""
+    return seg_dirs[pos] / f"{pos}_labels.nii.gz"
 
 
 def _segment_inputs(subject, pos: str, cfg: Mapping[str, Any]) -> list:
@@ -221,9 +226,8 @@ def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str
     R, h = prep.runner, float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
     fine = {**cfg, "mesh": {**cfg["mesh"], "size_mm": h / 2}}
     ref = prep.subject.reference
-    labels = prep.segment_dirs[ref] / f"{ref}_labels.nii.gz"
     mesh_dir, mesh_key = R.stage("mesh", {"mesh": fine["mesh"]}, [prep.segment_keys[ref]],
-                                 mesh_stage(labels, mesh_options(fine)),
+                                 mesh_stage(_labels(prep.segment_dirs, ref), mesh_options(fine)),
                                  label=f"refinement: mesh {h / 2:g} mm")
     # the measured skins are the default problem's (they do not depend on the mesh)
     prob_dir, prob_key = R.stage("problem", {}, [mesh_key, *prep.problem_inputs],

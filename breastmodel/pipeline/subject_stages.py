@@ -94,11 +94,10 @@ def mesh_stage(labels: Path, options: Mapping[str, Any], job=None) -> Callable[[
 
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
-        from meshing.background import mesh_in_background
+        from meshing.background import mesh_label_file
 
-        work = job or mesh_in_background(labels, background=False, **options)
         try:
-            mesh, size, why = work.result()
+            mesh, size, why = job.result() if job else mesh_label_file(labels, **options)
         except (ValueError, RuntimeError) as exc:
             raise StageError("mesh", str(exc), labels) from None
         mesh.save_npz(d / "mesh.npz")
