@@ -96,7 +96,8 @@ def check_registration(
     -------
     dict
         ``passed``, ``failures`` (messages), ``fle_mm``, ``fiducial_shift_mm`` per label and,
-        with ``chest_points``, ``chest_wall_shift_mm`` (mean, max) and
+        with ``chest_points``, ``chest_wall_shift_mm`` (mean, max), ``expected_tre_mm``
+        (mean, max: the fiducial-only fit's predicted error there) and
         ``chest_wall_worst_ratio`` (shift / predicted TRE, worst point).
     """
     labels = sorted(fixed_points)
@@ -118,8 +119,10 @@ def check_registration(
     if chest_points is not None and len(chest_points):
         d = np.linalg.norm(transform_points(refined, chest_points)
                            - transform_points(fiducial_only, chest_points), axis=1)
-        ratio = d / predicted_tre(chest_points, f, fle)
+        expected = predicted_tre(chest_points, f, fle)
+        ratio = d / expected
         out["chest_wall_shift_mm"] = {"mean": float(d.mean()), "max": float(d.max())}
+        out["expected_tre_mm"] = {"mean": float(expected.mean()), "max": float(expected.max())}
         out["chest_wall_worst_ratio"] = float(ratio.max())
         if ratio.max() > sigmas:
             failures.append(

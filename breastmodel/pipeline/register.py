@@ -21,10 +21,11 @@ log = logging.getLogger("breastmodel.register")
 REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
                  "sampling", "learning_rate_mm", "fine_levels", "mask_margin_mm",
                  "marker_diameter_mm", "seed", "threads", "fiducial_error_mm",
-                 "require_fiducials"}
+                 "require_fiducials", "fiducial_fallback"}
 #: ``[register]`` keys passed to :func:`registration.rigid.register_rigid` as they are.
 _RIGID_KEYS = ("max_residual_mm", "marker_mask_mm", "iterations", "sampling",
-               "learning_rate_mm", "fine_levels", "seed", "threads", "fiducial_error_mm")
+               "learning_rate_mm", "fine_levels", "seed", "threads", "fiducial_error_mm",
+               "fiducial_fallback")
 
 
 def read_config(path: Path | Mapping[str, Any] | None) -> dict[str, Any]:
@@ -99,7 +100,8 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     ------
     breastmodel.errors.StageError
         With ``require_fiducials = true``: the subject has no fiducials, or a position's
-        registration is flagged.
+        registration is flagged (its refined transform failed a check and
+        ``fiducial_fallback = false`` kept it).
     """
     from breastmodel.config import write_json, write_provenance
     from breastmodel.errors import StageError
@@ -109,7 +111,8 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     from registration.rigid import chest_wall_mask
 
     cfg = read_config(config)
-    require = _require_fiducials(cfg, config)
+    require = _switch(cfg, "require_fiducials", False, config)
+    _switch(cfg, "fiducial_fallback", True, config)
     subject = subject_dir if isinstance(subject_dir, Subject) else read_subject(subject_dir)
     if require and not subject.fiducials:
         raise StageError("register", "require_fiducials = true but the subject has no "
@@ -165,13 +168,13 @@ def _stop(name: str, res, report_path: Path) -> None:
                      "agree with the fiducials", report_path)
 
 
-def _require_fiducials(cfg: dict, config: Path | None) -> bool:
-    """The ``require_fiducials`` switch (default false), which must be a boolean."""
-    require = cfg.get("require_fiducials", False)
-    if not isinstance(require, bool):
-        raise ValueError(f"register: {config} [register] require_fiducials must be true or "
-                         f"false, got {require!r}")
-    return require
+def _switch(cfg: dict, key: str, default: bool, config: Path | None) -> bool:
+    """A ``[register]`` switch, which must be a boolean."""
+    value = cfg.get(key, default)
+    if not isinstance(value, bool):
+        raise ValueError(f"register: {config} [register] {key} must be true or false, got "
+                         f"{value!r}")
+    return value
 
 
 def _rigid_options(cfg: dict) -> dict[str, Any]:
@@ -259,6 +262,7 @@ def _entry(name: str, res, fid: dict, g: np.ndarray) -> dict[str, Any]:
         "checks": res.checks,
         "fiducial_only_matrix": (None if res.fiducial_transform is None else
                                  transform_to_matrix(res.fiducial_transform).tolist()),
+        "refined_matrix": transform_to_matrix(res.refined_transform).tolist(),
         "gravity_reference": g.tolist(),
         "warnings": list(res.warnings),
     }

@@ -74,14 +74,31 @@ def test_chest_wall_mask_leaves_out_the_breasts_and_the_space_they_swing_into(ti
     assert mask[back].any()
 
 
-def test_a_mask_that_sees_the_breasts_is_flagged(tilted):
-    """Degraded on purpose: the whole volume drives the correlation, breasts included."""
+def test_a_mask_that_sees_the_breasts_is_caught_and_the_fiducials_used(tilted):
+    """Degraded on purpose: the whole volume drives the correlation, breasts included. The
+    check catches it and the fiducial-only transform replaces it (or, asked to keep it, the
+    refined one stays, flagged)."""
     fixed, moving, labels, truth, fp, mp = tilted
+    pts = chest_points(labels)
     res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp, fixed_mask=None)
-    tre = target_registration_error(res.transform, truth, chest_points(labels))
-    assert tre.mean() > 1.0  # the degradation is real ...
-    assert res.status == "flagged"  # ... and reported
+    refined = target_registration_error(res.refined_transform, truth, pts)
+    assert refined.mean() > 1.0  # the degradation is real ...
+    assert res.status == "fiducials"  # ... caught ...
     assert any("walked away" in w for w in res.warnings)
+    assert any("using the fiducial-only transform" in w for w in res.warnings)
+    used = target_registration_error(res.transform, truth, pts)
+    fid = target_registration_error(res.fiducial_transform, truth, pts)
+    np.testing.assert_array_equal(used, fid)  # ... and mended
+    assert used.mean() < 0.5 * refined.mean()
+    expected = predicted_tre(pts, np.asarray([fp[k] for k in res.used_labels]),
+                             res.checks["fle_mm"])
+    assert used.mean() <= 3.0 * expected.mean()
+
+    kept = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp, fixed_mask=None,
+                          fiducial_fallback=False)
+    assert kept.status == "flagged"
+    np.testing.assert_array_equal(target_registration_error(kept.transform, truth, pts),
+                                  refined)
 
 
 def test_a_start_10_mm_off_is_never_reported_good(tilted):
@@ -94,10 +111,12 @@ def test_a_start_10_mm_off_is_never_reported_good(tilted):
     mask = chest_wall_mask(labels)
     res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp, fixed_mask=mask,
                          initial=off)
-    tre = target_registration_error(res.transform, truth, pts).mean()
+    tre = target_registration_error(res.refined_transform, truth, pts).mean()
     assert res.initialisation == "given"
     assert (res.status == "ok") == (tre <= 0.5)
-    assert res.status in ("ok", "flagged")
+    assert res.status in ("ok", "fiducials")
+    if res.status == "fiducials":
+        assert res.transform is res.fiducial_transform
 
     blind = register_rigid(fixed, moving, fixed_mask=mask, initial=off)
     assert blind.status == "unchecked" and not blind.checks
@@ -186,21 +205,38 @@ def test_command_reports_status_and_stops_when_required(tilted_subject, tmp_path
         tmp_path / "ok" / "tilted.tfm").read_bytes()
 
     # Degraded on purpose: a segmentation that calls the breasts muscle puts them in the
-    # correlation mask; the swing pulls the fit away, the check fails, and the run stops.
+    # correlation mask; the swing pulls the fit away and the check fails. By default the
+    # fiducial-only transform is used and said so; it agrees with the markers, so
+    # require_fiducials lets it through.
     bad_seg = tmp_path / "bad_seg"
     bad_seg.mkdir()
     body = sitk.Cast(labels > 0, sitk.sitkUInt8) * 2
     for p in ("supine", "tilted"):
         sitk.WriteImage(body, str(bad_seg / f"{p}_labels.nii.gz"))
+    rep = register_subject(subject, tmp_path / "mended", seg_dir=bad_seg, config=cfg)
+    entry = rep["positions"]["tilted"]
+    assert entry["status"] == "fiducials" and not entry["checks"]["passed"]
+    assert entry["matrix"] == entry["fiducial_only_matrix"] != entry["refined_matrix"]
+    assert any("using the fiducial-only transform" in w for w in entry["warnings"])
+    got = sitk.ReadTransform(str(tmp_path / "mended" / "tilted.tfm"))
+    assert target_registration_error(got, truth, chest_points(labels)).mean() <= 1.0
+
+    # Asked to keep the refined transform, the check's failure stops the run ...
+    strict = tmp_path / "strict.toml"
+    strict.write_text("[register]\nrequire_fiducials = true\nfiducial_fallback = false\n")
     with pytest.raises(StageError, match="require_fiducials"):
-        register_subject(subject, tmp_path / "strict", seg_dir=bad_seg, config=cfg)
+        register_subject(subject, tmp_path / "strict", seg_dir=bad_seg, config=strict)
     saved = json.loads((tmp_path / "strict" / "registration.json").read_text())
     assert saved["positions"]["tilted"]["status"] == "flagged"
     assert any("walked away" in w for w in saved["positions"]["tilted"]["warnings"])
 
-    # Without require_fiducials the same result is written with its warning, no error.
-    rep = register_subject(subject, tmp_path / "lax", seg_dir=bad_seg)
+    # ... and without require_fiducials it is written with its warning, no error.
+    rep = register_subject(subject, tmp_path / "lax", seg_dir=bad_seg,
+                           config={"fiducial_fallback": False})
     assert rep["positions"]["tilted"]["status"] == "flagged"
+    with pytest.raises(ValueError, match="fiducial_fallback must be true or false"):
+        register_subject(subject, tmp_path / "typo", seg_dir=bad_seg,
+                         config={"fiducial_fallback": "no"})
 
 
 def test_a_marker_that_moved_with_the_skin_leaves_the_mask(tilted):

@@ -1,0 +1,111 @@
+"""Registration on the validation suite: each position's chest-wall TRE against the truth for
+the transform the stage uses, the correlation's (refined) and the markers' (fiducial-only).
+
+    python bench/register_suite.py --work bench/validation_work           # seeds 0-11
+    python bench/register_suite.py --size full --seeds 0 --arms truth_labels,pipeline
+
+Subjects come from the phantom family as in ``bench/validate.py`` (their FEBio truth cached
+under ``--work``/truth_cache; the same ``--work`` reuses them). Arms: ``truth_labels`` (the
+chest-wall mask from the truth's label maps) and ``pipeline`` (from ``segment``'s). The
+default ``[register]`` config, except ``require_fiducials = false`` so that every position
+is measured. Prints a table and writes ``--json`` (default
+``bench/results/register_suite.json``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+# bench/ holds scripts named like the packages (bench/meshing.py): not on the import path
+if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
+    sys.path[0] = str(ROOT)
+
+
+def position_row(entry: dict, truth_tfm, points: np.ndarray) -> dict:
+    """TRE (mean, max, mm) of the used, refined and fiducial-only transforms of one
+    ``registration.json`` entry against the truth at ``points``."""
+    from registration.qa import target_registration_error
+    from registration.transforms import matrix_to_transform
+
+    row = {"status": entry["status"]}
+    for key, what in (("matrix", "used"), ("refined_matrix", "refined"),
+                      ("fiducial_only_matrix", "fiducials")):
+        if entry.get(key) is None:
+            row[what] = None
+            continue
+        tre = target_registration_error(matrix_to_transform(np.asarray(entry[key])),
+                                        truth_tfm, points)
+        row[what] = {"mean": round(float(tre.mean()), 3), "max": round(float(tre.max()), 3)}
+    return row
+
+
+def register_one(name: str, make, work: Path, arm: str) -> dict:
+    """Every position of subject ``name`` registered in ``arm``: {position: row}."""
+    from breastmodel.pipeline.register import _truth_points, register_subject, truth_transform
+
+    subject, truth, _ = make(name, work / "subjects" / name)
+    out = work / "register_suite" / arm / name
+    rep = register_subject(subject, out, truth=truth,
+                           seg_dir=truth if arm == "truth_labels" else None,
+                           config={"require_fiducials": False})
+    points = _truth_points(truth, rep["reference"])
+    return {p: position_row(e, truth_transform(truth, rep["reference"], p), points)
+            for p, e in rep["positions"].items()}
+
+
+def _cell(t: dict | None) -> str:
+    return "-" if t is None else f"{t['mean']:.2f}/{t['max']:.2f}"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", default=",".join(str(s) for s in range(12)))
+    ap.add_argument("--size", choices=("small", "full"), default="small")
+    ap.add_argument("--work", type=Path, default=ROOT / "bench" / "validation_work")
+    ap.add_argument("--arms", default="truth_labels")
+    ap.add_argument("--febio", default=None)
+    ap.add_argument("--json", type=Path,
+                    default=ROOT / "bench" / "results" / "register_suite.json")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    os.environ.setdefault("OMP_NUM_THREADS", "2")
+    from breastmodel.config import write_json
+    from breastmodel.febio import find_febio
+    from breastmodel.validation import family_maker
+
+    make = family_maker(size=args.size, febio=str(find_febio(args.febio)),
+                        cache=args.work / "truth_cache")
+    rows = []
+    print(f"{'subject':10s} {'arm':12s} {'position':18s} {'status':10s} "
+          f"{'TRE used':>12s} {'refined':>12s} {'fiducials':>12s}   (mean/max mm)")
+    for seed in (int(s) for s in args.seeds.split(",")):
+        name = f"{args.size}-{seed:03d}"
+        for arm in args.arms.split(","):
+            try:
+                got = register_one(name, make, args.work, arm)
+            except Exception as exc:  # noqa: BLE001  (a subject that fails is a row)
+                rows.append({"subject": name, "arm": arm, "error": f"{type(exc).__name__}: "
+                             f"{exc}"[:200]})
+                print(f"{name:10s} {arm:12s} {rows[-1]['error']}")
+                continue
+            for pos, r in got.items():
+                rows.append({"subject": name, "arm": arm, "position": pos, **r})
+                print(f"{name:10s} {arm:12s} {pos:18s} {r['status']:10s} "
+                      f"{_cell(r['used']):>12s} {_cell(r['refined']):>12s} "
+                      f"{_cell(r['fiducials']):>12s}", flush=True)
+    write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                           "size": args.size, "rows": rows})
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
