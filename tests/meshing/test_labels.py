@@ -76,3 +76,21 @@ def test_touching_breasts_are_split_on_the_thinnest_plane_with_a_warning():
     arr[:, :, 30:48] = 0
     xm2 = midline_x(arr.astype(bool), Grid.of(img))
     assert xm2 == pytest.approx(0.5 * (32 + 46), abs=1.0)
+
+
+def test_a_thin_sheet_apart_from_the_breast_is_dropped_a_thick_piece_kept():
+    """The partial-volume rim where muscle meets air looks like fat on a fat-suppressed scan:
+    a sheet of "breast" two voxels thick behind the muscle (10 % of the breast's volume, so
+    not an island) is removed with a warning; a block five voxels thick apart from the
+    breast is tissue and stays."""
+    img = touching_boxes_labels()  # breast y 6-25, muscle y 26-45, 1 mm voxels
+    arr = sitk.GetArrayFromImage(img)
+    arr[6:56, 46:48, 6:66] = 1  # 6000 voxels, 2 thick, on the muscle's back
+    arr[20:40, 0:5, 20:40] = 1  # 2000 voxels, 5 thick, on the field of view's edge
+    with pytest.warns(MeshingWarning) as rec:
+        masks = tissue_masks(_with(img, arr))
+    text = " ".join(str(w.message) for w in rec)
+    assert "removed 1 thin sheet(s) of breast tissue (6000 voxels, at most 1.0 mm deep)" in text
+    assert not masks.breast[:, 46:48].any()
+    assert masks.breast[20:40, 0:5, 20:40].all()
+    assert masks.breast.sum() == 60000 + 2000
