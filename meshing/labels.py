@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,6 +28,19 @@ def repaired(message: str) -> None:
     """Report a repair both as a warning (tests, notebooks) and in the log (CLI)."""
     log.warning(message)
     warnings.warn(message, MeshingWarning, stacklevel=3)
+
+
+@contextmanager
+def collect_repairs():
+    """Context manager yielding a list that receives the message of every repair reported
+    (:func:`repaired`) inside it, for a stage's record and report; they are still logged."""
+    got: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", MeshingWarning)
+        try:
+            yield got
+        finally:
+            got += [str(w.message) for w in caught if issubclass(w.category, MeshingWarning)]
 
 
 @dataclass(frozen=True)

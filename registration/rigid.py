@@ -102,8 +102,7 @@ def register_rigid(
         Chest-wall mask on the reference grid (breasts masked out, see
         :func:`chest_wall_mask`); only it drives the correlation.
     initial : SimpleITK.Transform, optional
-        A start that replaces the fiducial initialisation (the fiducials still check the
-        result).
+        A start that replaces the fiducial initialisation (the fiducials still check it).
     max_residual_mm : float
         Fiducial consistency threshold for the landmark initialisation.
     marker_mask_mm : float
@@ -112,9 +111,7 @@ def register_rigid(
         skin: a note names them). Where the chest wall leaves a direction loose (e.g. a
         torso's body axis, :func:`registration.directions.loose_directions`), a second
         refinement over the mask and these balls sets it; every other direction stays the
-        chest wall's. Markers sit on skin, which the breasts pull along in a tilted
-        position (on the validation suite a coherent lateral shift of about 1 mm that
-        leaves no residual), so they may not drive the directions the wall pins.
+        chest wall's (:func:`_loose_from_markers`).
     fiducial_error_mm : float
         Fiducial localisation error (FLE) assumed at least, mm, and at least half the
         diagonal of the coarser image's voxel; see :func:`check_registration`.
@@ -123,24 +120,17 @@ def register_rigid(
         iterations per level, fraction of mask voxels sampled, first step (mm), the sampling
         seed and the metric's threads; see :func:`refine_rigid`.
     fine_levels : int
-        How many of the finest levels the masked chest-wall refinement runs. Its start is
-        already close (the fiducials, or the moments start after a whole-body pass over the
-        coarser levels), and a coarse level's blurred optimum would pull it away along the
-        directions a smooth chest wall leaves loose.
+        How many of the finest levels the masked chest-wall refinement runs (its start is
+        close; a coarse level's blurred optimum pulls along the directions a wall leaves loose).
     fiducial_fallback : bool
         When the refined transform fails a check, return the fiducial-only solution (status
-        ``"fiducials"``, a warning gives its expected error on the chest wall) instead of the
-        refined one (status ``"flagged"``). On the validation suite the two failures seen
-        were the refinement's: chest-wall TRE 1.45 mm refined against 0.91 mm
-        fiducial-only (small-002 prone, 2 mm voxels), and 1.17 against 0.19 mm (full-000
-        tilted, the project's own segmentation).
+        ``"fiducials"``) instead of the refined one (``"flagged"``); see :func:`_checked`.
 
     Returns
     -------
     RigidResult
-        ``status`` is ``"ok"`` when the checks passed, ``"fiducials"`` or ``"flagged"`` when
-        one failed (the reasons are in ``warnings``) and ``"unchecked"`` without fiducials
-        to check against.
+        ``status`` "ok" (the checks passed), "fiducials" or "flagged" (one failed: the
+        reasons are in ``warnings``), "unchecked" (no fiducials to check against).
     """
     _check_seed(seed)
     notes: list[str] = []
@@ -151,8 +141,7 @@ def register_rigid(
                        shrink=shrink, smooth_mm=smooth_mm, opts=opts)
     for n in notes:
         log.warning("%s: %s", STAGE, n)
-    # The start is close (fiducials, or moments + whole body): refine the finest levels.
-    k = max(1, int(fine_levels))
+    k = max(1, int(fine_levels))  # the start is close (fiducials, or moments + whole body)
     levels = dict(shrink=tuple(shrink)[-k:], smooth_mm=tuple(smooth_mm)[-k:], **opts)
     tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=fixed_mask, **levels)
     if fixed_mask is not None:
@@ -161,16 +150,30 @@ def register_rigid(
         tfm = _loose_from_markers(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
                                   balls=[fixed_points[k] for k in pinned],
                                   radius_mm=marker_mask_mm)
-    checks, status = _check(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes,
-                            chest=fixed_mask, fiducial_error_mm=fiducial_error_mm)
-    chosen = tfm
-    if status == "flagged" and fiducial_fallback:
-        chosen, status = fid, "fiducials"
-        notes.append(_fallback_note(checks))
-        log.warning("%s: %s", STAGE, notes[-1])
+    chosen, checks, status = _checked(fixed, moving, tfm, fid, used, fixed_points,
+                                      moving_points, notes, chest=fixed_mask,
+                                      fiducial_error_mm=fiducial_error_mm,
+                                      fallback=fiducial_fallback)
     res = fiducial_residuals(chosen, fixed_points or {}, moving_points or {})
     return RigidResult(chosen, how, res, used, metric, tuple(notes), status=status,
                        checks=checks, fiducial_transform=fid, refined_transform=tfm)
+
+
+def _checked(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes, *, chest,
+             fiducial_error_mm, fallback):
+    """(the transform to use, :func:`_check`'s checks, status): the refined ``tfm`` when it
+    passes, else with ``fallback`` the fiducial-only ``fid`` (status ``"fiducials"``, a note
+    with its expected chest-wall error). On the validation suite the two failures seen were
+    the refinement's: chest-wall TRE 1.45 mm refined against 0.91 mm fiducial-only
+    (small-002 prone, 2 mm voxels), and 1.17 against 0.19 mm (full-000 tilted, the project's
+    own segmentation); every other position passed (``bench/register_suite.py``)."""
+    checks, status = _check(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes,
+                            chest=chest, fiducial_error_mm=fiducial_error_mm)
+    if status != "flagged" or not fallback:
+        return tfm, checks, status
+    notes.append(_fallback_note(checks))
+    log.warning("%s: %s", STAGE, notes[-1])
+    return fid, checks, "fiducials"
 
 
 def _fallback_note(checks: dict) -> str:
@@ -228,7 +231,9 @@ def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, ball
     the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
     which and by how much); ``wall`` itself where the chest wall pins every direction, or
     where no marker is there to set a loose one (a note says the registration is not
-    determined along it)."""
+    determined along it). Markers sit on skin, which the breasts pull along in a tilted
+    position (on the validation suite a coherent lateral shift of about 1 mm that leaves no
+    residual), so they may not drive the directions the wall pins."""
     dirs = loose_directions(fixed, chest)
     if not dirs.loose.any():
         if balls:

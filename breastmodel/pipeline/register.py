@@ -35,12 +35,16 @@ def read_config(path: Path | Mapping[str, Any] | None) -> dict[str, Any]:
 
     if path is None:
         return {}
+    where = "register: [register]"
     if isinstance(path, Mapping):
         cfg = dict(path)
-        check_keys(cfg, REGISTER_KEYS, where="register: [register]")
-        return cfg
-    cfg = dict(load_toml(path, stage="register").get("register", {}))
-    check_keys(cfg, REGISTER_KEYS, where=f"register: {path} [register]")
+    else:
+        cfg = dict(load_toml(path, stage="register").get("register", {}))
+        where = f"register: {path} [register]"
+    check_keys(cfg, REGISTER_KEYS, where=where)
+    for key in ("require_fiducials", "fiducial_fallback"):
+        if key in cfg and not isinstance(cfg[key], bool):
+            raise ValueError(f"{where} {key} must be true or false, got {cfg[key]!r}")
     return cfg
 
 
@@ -100,8 +104,7 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     ------
     breastmodel.errors.StageError
         With ``require_fiducials = true``: the subject has no fiducials, or a position's
-        registration is flagged (its refined transform failed a check and
-        ``fiducial_fallback = false`` kept it).
+        registration is "flagged" (failed a check, kept by ``fiducial_fallback = false``).
     """
     from breastmodel.config import write_json, write_provenance
     from breastmodel.errors import StageError
@@ -111,8 +114,7 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     from registration.rigid import chest_wall_mask
 
     cfg = read_config(config)
-    require = _switch(cfg, "require_fiducials", False, config)
-    _switch(cfg, "fiducial_fallback", True, config)
+    require = cfg.get("require_fiducials", False)
     subject = subject_dir if isinstance(subject_dir, Subject) else read_subject(subject_dir)
     if require and not subject.fiducials:
         raise StageError("register", "require_fiducials = true but the subject has no "
@@ -167,14 +169,6 @@ def _stop(name: str, res, report_path: Path) -> None:
                      f"{res.status} ({why}); with require_fiducials = true it must "
                      "agree with the fiducials", report_path)
 
-
-def _switch(cfg: dict, key: str, default: bool, config: Path | None) -> bool:
-    """A ``[register]`` switch, which must be a boolean."""
-    value = cfg.get(key, default)
-    if not isinstance(value, bool):
-        raise ValueError(f"register: {config} [register] {key} must be true or false, got "
-                         f"{value!r}")
-    return value
 
 
 def _rigid_options(cfg: dict) -> dict[str, Any]:

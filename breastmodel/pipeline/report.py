@@ -156,9 +156,24 @@ def _identifiability_notes(ident: dict | None) -> list[str]:
     return [f"<p class='ident'>{n}</p>" for n in notes]
 
 
+def _repair_rows(mesh: Mapping[str, Any]) -> list[list]:
+    """Status rows of the label maps' repairs before meshing and skin measurement (none when
+    the run's stages predate their record)."""
+    rows = []
+    if "repairs" in mesh:
+        rows.append(["mesh", f"{mesh.get('n_tets')} tets, {mesh.get('mesh_size_mm')} mm",
+                     f"{len(mesh['repairs'])} repair(s) of the label map",
+                     "; ".join(mesh["repairs"]) or "-"])
+    for pos, rep in (mesh.get("skin_repairs") or {}).items():
+        rows.append([f"measured skin {pos}", "label map surface",
+                     f"{len(rep)} repair(s) of the label map", "; ".join(rep) or "-"])
+    return rows
+
+
 def _status_rows(metrics: Mapping[str, Any], fit_info: Mapping[str, Any] | None,
                  sf: Mapping[str, Any]) -> list[list]:
-    rows = [["stress-free geometry", sf.get("method"),
+    rows = _repair_rows(metrics.get("mesh") or {})
+    rows += [["stress-free geometry", sf.get("method"),
              "converged" if sf.get("converged") else "NOT converged",
              f"{sf.get('forward_solves', 0)} forward solves"]]
     for p, m in metrics["positions"].items():

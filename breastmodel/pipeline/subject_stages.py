@@ -88,21 +88,24 @@ def register_stage(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]
 
 def mesh_stage(labels: Path, options: Mapping[str, Any], job=None) -> Callable[[Path], None]:
     """The tet mesh of the reference's label map ``labels`` (``mesh.npz``, ``mesh.json``:
-    size and how it was chosen, counts), from ``job`` (a started
+    size and how it was chosen, counts, the label map's repairs), from ``job`` (a started
     :class:`meshing.background.mesh_in_background`) or made now; ``options`` is the
     ``[mesh]`` table with ``threads`` resolved."""
 
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
         from meshing.background import mesh_label_file
+        from meshing.labels import collect_repairs
 
         try:
-            mesh, size, why = job.result() if job else mesh_label_file(labels, **options)
+            with collect_repairs() as repairs:
+                mesh, size, why = job.result() if job else mesh_label_file(labels, **options)
         except (ValueError, RuntimeError) as exc:
             raise StageError("mesh", str(exc), labels) from None
         mesh.save_npz(d / "mesh.npz")
         write_json(d / "mesh.json", {"mesh_size_mm": size, "mesh_size": why,
-                                     "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets})
+                                     "n_nodes": mesh.n_nodes, "n_tets": mesh.n_tets,
+                                     "repairs": repairs})
     return fn
 
 
@@ -118,23 +121,29 @@ def mesh_options(cfg: Mapping[str, Any]) -> dict:
 
 def skins_stage(subject, reg_dir: Path, cfg: Mapping[str, Any]) -> Callable[[Path], None]:
     """The measured skin of every position in the reference frame (``<position>_skin.npz``),
-    from the registered label maps; worker processes on an adult volume."""
+    from the registered label maps, and each label map's repairs (``skins.json``); worker
+    processes on an adult volume."""
 
     def fn(d: Path) -> None:
+        from breastmodel.config import write_json
         from mechanics.threads import resolve_threads
+        from meshing.labels import collect_repairs
         from meshing.surface import skin_surfaces
 
         positions = list(subject.positions)
         paths = [reg_dir / ("reference_labels.nii.gz" if pos == subject.reference
                             else f"{pos}_labels_in_reference.nii.gz") for pos in positions]
+        repairs = {}
         with skin_surfaces(paths, target_edge_mm=float(cfg["surface"]["edge_mm"]),
                            workers=resolve_threads(None)) as skins:
             for pos, path in zip(positions, paths, strict=True):
                 try:
-                    v, f = next(skins)
+                    with collect_repairs() as repairs[pos]:
+                        v, f = next(skins)
                 except (ValueError, RuntimeError) as exc:
                     raise StageError("surface", f"position {pos!r}: {exc}", path) from None
                 np.savez(d / f"{pos}_skin.npz", vertices=v, triangles=f)
+        write_json(d / "skins.json", {"repairs": repairs})
     return fn
 
 
@@ -162,7 +171,9 @@ def problem_stage(subject, reg_dir: Path, mesh_dir: Path,
                 tfm = read_transform(reg_dir / f"{pos}.tfm")
                 p = transform_points(tfm.GetInverse(), p)
             landmarks[pos] = {k: v.tolist() for k, v in zip(names, p)}
-        write_json(d / "problem.json", {"reference": ref, "gravity": gravity,
-                                        "landmarks": landmarks,
-                                        **json.loads((mesh_dir / "mesh.json").read_text())})
+        skins = skins_dir / "skins.json"  # absent from a cache made before it was written
+        write_json(d / "problem.json", {
+            "reference": ref, "gravity": gravity, "landmarks": landmarks,
+            "skin_repairs": json.loads(skins.read_text())["repairs"] if skins.is_file() else {},
+            **json.loads((mesh_dir / "mesh.json").read_text())})
     return fn

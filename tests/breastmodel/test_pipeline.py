@@ -75,6 +75,10 @@ def test_run_writes_metrics_surfaces_params_report(first_run):
     assert set(metrics["positions"]) == set(POSITIONS)
     assert metrics["mesh"]["mesh_size_mm"] == 12.0 and metrics["mesh"]["mesh_size"] == "given"
     assert metrics["mesh"]["n_tets"] > 0
+    # the label maps' repairs before meshing and skin measurement are recorded (a list per
+    # map, maybe empty) and listed in the report's run status
+    assert isinstance(metrics["mesh"]["repairs"], list)
+    assert set(metrics["mesh"]["skin_repairs"]) == set(POSITIONS)
     for pos, m in metrics["positions"].items():
         for key in ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm"):
             assert math.isfinite(m[key]) and m[key] >= 0, (pos, key)
@@ -94,6 +98,8 @@ def test_run_writes_metrics_surfaces_params_report(first_run):
     assert html.count("data:image/png;base64,") >= len(POSITIONS) + 1
     for pos in POSITIONS:
         assert pos in html
+        assert f"<td>measured skin {pos}</td>" in html
+    assert "repair(s) of the label map" in html
 
 
 def test_predicted_ply_is_in_the_reference_frame(first_run):
