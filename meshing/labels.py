@@ -33,7 +33,8 @@ def repaired(message: str) -> None:
 @contextmanager
 def collect_repairs():
     """Context manager yielding a list that receives the message of every repair reported
-    (:func:`repaired`) inside it, for a stage's record and report; they are still logged."""
+    (:func:`repaired`) inside it, for a stage's record and report; they are still logged,
+    and any other warning is passed on."""
     got: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", MeshingWarning)
@@ -41,6 +42,9 @@ def collect_repairs():
             yield got
         finally:
             got += [str(w.message) for w in caught if issubclass(w.category, MeshingWarning)]
+    for w in caught:
+        if not issubclass(w.category, MeshingWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 @dataclass(frozen=True)
@@ -133,15 +137,14 @@ def _drop_islands(mask: np.ndarray, what: str, *, keep_fraction: float = 0.01) -
 def _drop_sheets(mask: np.ndarray, what: str, spacing, *, min_depth_voxels: float = 2.0):
     """Remove connected components other than the largest whose deepest voxel lies less
     than ``min_depth_voxels`` of the coarsest spacing from their surface (or the field of
-    view's edge): sheets one or two
-    voxels thick, such as the partial-volume rim where muscle meets air, which on a
-    fat-suppressed scan has the intensity of fat. On the validation suite's coil subject
-    small-000 a 726-voxel sheet (1.5 % of the breast, 2.1 mm deep) behind the chest wall,
-    kept by :func:`_drop_islands`, put 700 of 4900 measured-skin points 7-15 mm from the
-    model's skin (supine MHD 2.02 mm against 0.19 with the truth's labels). The sheets the
-    suite's segmentations hold are 1.4-2.6 mm deep and all air or muscle in the truth;
-    the one piece of real breast apart from the main mass (small-001, where the segmentation
-    calls glands muscle) is 4.2 mm deep at 1.5 mm voxels, and kept."""
+    view's edge): sheets one or two voxels thick, such as the partial-volume rim where muscle
+    meets air, which on a fat-suppressed scan has the intensity of fat. On the validation
+    suite's coil subject small-000 a 726-voxel sheet (1.5 % of the breast, 2.1 mm deep)
+    behind the chest wall, kept by :func:`_drop_islands`, put 700 of 4900 measured-skin
+    points 7-15 mm from the model's skin (supine MHD 2.02 mm against 0.19 with the truth's
+    labels). The sheets the suite's segmentations hold are 1.4-2.6 mm deep and all air or
+    muscle in the truth; the one piece of real breast apart from the main mass (small-001,
+    where the segmentation calls glands muscle) is 4.2 mm deep at 1.5 mm voxels, and kept."""
     lab, n = ndi.label(mask)
     if n <= 1:
         return mask

@@ -94,3 +94,15 @@ def test_a_thin_sheet_apart_from_the_breast_is_dropped_a_thick_piece_kept():
     assert not masks.breast[:, 46:48].any()
     assert masks.breast[20:40, 0:5, 20:40].all()
     assert masks.breast.sum() == 60000 + 2000
+
+
+def test_collect_repairs_keeps_repairs_and_passes_other_warnings_on():
+    import warnings
+
+    from meshing.labels import repaired
+
+    with pytest.warns(RuntimeWarning, match="not a repair"):
+        with collect_repairs() as got:
+            repaired("meshing: filled 1 hole")
+            warnings.warn("not a repair", RuntimeWarning, stacklevel=1)
+    assert got == ["meshing: filled 1 hole"]
