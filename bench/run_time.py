@@ -96,7 +96,7 @@ register                               29.4                  30.1             27
 measured skins                         24.6                  23.4             32.2
 mesh (the wait for it)                 85.5                  88.5             81.2
 fit                                   170.6 (18 sim.)       113.6 (12 sim.)  111.4 (12 sim.)
-the rest                               19.6                  18.2             12.9
+the rest                               19.6                  18.2             18.4
 whole run                             371.2                 315.5            312.4
 fitted breast modulus (truth 1.9)      1.730                 1.739            1.739 kPa
 MHD prone / supine / tilted (held out) 1.201/0.556/1.182     1.201/0.556/1.179  1.201/0.556/0.917
