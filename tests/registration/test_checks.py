@@ -260,3 +260,33 @@ def test_a_marker_that_moved_with_the_skin_leaves_the_mask(tilted):
     res = register_rigid(fixed, moving, fixed_points=fp, moving_points=mp,
                          fixed_mask=chest_wall_mask(labels))
     assert not any("left out of the correlation mask" in n for n in res.warnings)
+
+
+@pytest.mark.parametrize("how", ["slid", "bent"])
+def test_the_fiducials_replace_a_refinement_that_slid_not_one_a_marker_bent(how):
+    """A refined transform that fails the check by moving every marker alike slid as a
+    whole: the fiducial-only one replaces it. One that disagrees at a single marker (a
+    rotation about an axis through two others) is what a marker pulled along by the skin
+    does to the fiducial fit: the refined one is kept, flagged, and the marker named."""
+    from registration.rigid import _checked
+
+    image = sitk.Image(4, 4, 4, sitk.sitkFloat32)
+    image.SetSpacing((0.5, 0.5, 0.5))
+    fp = {"a": np.array([0.0, 0, 0]), "b": np.array([100.0, 0, 0]),
+          "c": np.array([50.0, 10, 0]), "d": np.array([50.0, 100, 0])}
+    fid = euler((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    mp = {k: transform_points(fid, v)[0] for k, v in fp.items()}
+    refined = (euler((0.0, 0.0, 0.0), (2.0, 0.0, 0.0)) if how == "slid" else
+               euler((np.degrees(0.02), 0.0, 0.0), (0.0, 0.0, 0.0), center=(0.0, 0.0, 0.0)))
+    notes: list[str] = []
+    used, checks, status = _checked(image, image, refined, fid, tuple(fp), fp, mp, notes,
+                                    chest=None, fiducial_error_mm=1.0, fallback=True)
+    assert not checks["passed"]
+    if how == "slid":
+        assert status == "fiducials" and used is fid
+        assert any("moved every marker alike" in n for n in notes)
+    else:
+        shift = checks["fiducial_shift_mm"]
+        assert shift["d"] > 1.9 and shift["a"] < 1e-6 and shift["b"] < 1e-6
+        assert status == "flagged" and used is refined
+        assert any("mostly at 'd'" in n and "kept" in n for n in notes)
