@@ -26,17 +26,18 @@ Config (TOML, all optional)::
     mask_margin_mm = 6.0       # chest-wall mask: band behind the muscle, mm
     marker_diameter_mm = 4.0
     fiducial_error_mm = 1.0    # smallest fiducial localisation error the checks assume
-    fiducial_fallback = true   # a refined transform that fails a check: use the fiducials'
+    fiducial_fallback = true   # a refined transform that failed by sliding: use the fiducials'
     require_fiducials = false  # stop (error) when a position's check fails ("flagged")
     seed = 20211               # metric sampling seed, >= 1 (0 would mean the wall clock)
     threads = 1                # metric threads (1: the same transform on every machine)
 
 Each position's entry in ``registration.json`` has ``status``: ``"ok"`` (the refined
 transform agrees with the fiducial-only solution at the markers and on the chest wall),
-``"fiducials"`` (it does not, so the fiducial-only transform is used; the reasons and that
-transform's expected error on the chest wall are in ``warnings``), ``"flagged"`` (it does
-not and ``fiducial_fallback = false`` kept it) or ``"unchecked"`` (fewer than three
-consistent fiducials found: a warning, not an error). ``matrix`` is the transform used,
+``"fiducials"`` (it does not, having moved every marker alike, so the fiducial-only transform
+is used; the reasons and that transform's expected error on the chest wall are in
+``warnings``), ``"flagged"`` (it does not, and it was kept: the disagreement sits at one
+marker, which the skin may have pulled along, or ``fiducial_fallback = false``) or
+``"unchecked"`` (fewer than three consistent fiducials found: a warning, not an error). ``matrix`` is the transform used,
 ``refined_matrix`` the correlation's and ``fiducial_only_matrix`` the markers'.
 """
 
