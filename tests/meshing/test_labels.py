@@ -106,3 +106,29 @@ def test_collect_repairs_keeps_repairs_and_passes_other_warnings_on():
             repaired("meshing: filled 1 hole")
             warnings.warn("not a repair", RuntimeWarning, stacklevel=1)
     assert got == ["meshing: filled 1 hole"]
+
+
+def test_a_pieces_depth_from_its_crop_equals_the_whole_volumes_below_the_limit():
+    """_drop_sheets measures each piece's depth on its bounding box grown by the limit; below
+    the limit that is the whole volume's distance transform exactly (beyond the volume is
+    outside, as a pad of 0)."""
+    from scipy import ndimage as ndi
+
+    from meshing.labels import _depth_mm
+
+    rng = np.random.default_rng(0)
+    mask = ndi.binary_opening(rng.random((30, 40, 50)) > 0.45, iterations=1)
+    spacing = (1.0, 1.5, 2.0)  # x, y, z
+    lab, n = ndi.label(mask)
+    edt = ndi.distance_transform_edt(np.pad(mask, 1), sampling=spacing[::-1])[1:-1, 1:-1, 1:-1]
+    limit = 4.0
+    checked = 0
+    for k, box in enumerate(ndi.find_objects(lab)):
+        whole = float(edt[lab == k + 1].max())
+        got = _depth_mm(mask, lab == k + 1, box, spacing, limit)
+        if whole < limit:
+            assert got == pytest.approx(whole, abs=1e-12)
+            checked += 1
+        else:
+            assert got >= limit
+    assert checked >= 5
