@@ -5,8 +5,10 @@ the contrast-to-noise ratio, with the checks that refuse a volume without a body
 from __future__ import annotations
 
 import numpy as np
+import SimpleITK as sitk
 from scipy import ndimage
 
+from imaging.preprocess import background_of, body_box, check_volume, n4_correct, preprocess
 from imaging.segment_regions import STAGE, SegmentationError
 
 #: Smallest accepted contrast-to-noise ratio between body (fat) and background.
@@ -23,6 +25,10 @@ APEX_BAND_MM = 10.0
 #: suite's 33 scans (bench/segment_suite.py): fat suppressed 0.82 at most, fat bright 1.07 at
 #: least.
 FAT_SUPPRESSED_RATIO = 0.95
+#: Denoising iterations of ``denoise_iterations="auto"``, doubled on a scan whose background
+#: noise after them is above NOISY_SIGMA (fraction of the fat level). Suite (33 scans): NOISE
+NOISY_SIGMA = 0.03
+DENOISE_ITERATIONS = 3
 
 
 def air_noise(a: np.ndarray) -> tuple[float, float]:
@@ -152,3 +158,46 @@ def _require_cnr(cnr: float, name: str) -> None:
             f"{STAGE}: {name}: no body found: the contrast between the brightest tissue and "
             f"the background is {cnr:.1f} times the background noise (at least {MIN_CNR:g} "
             "expected; is this volume noise only, or all tissue?)")
+
+
+def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options):
+    """Check and preprocess ``img`` (step 1), on the body's box when ``crop``: N4 then runs
+    on the whole volume (the same correction serves the registration, cached) and the
+    normalisation uses the whole volume's background. ``denoise_iterations="auto"``:
+    :data:`DENOISE_ITERATIONS`, and where the background's noise after them is still above
+    :data:`NOISY_SIGMA` the denoising starts again with twice as many (more smooths the thin
+    muscle of a coarse scan away: on small-002, muscle Dice 0.91-0.94 at 6, 0.84-0.88 at
+    12). Returns (preprocessed, the volume it was made from, the box or None, the
+    background's noise after :data:`DENOISE_ITERATIONS` or the given iterations: NaN where
+    too little background is seen); notes say when the volume was cropped and when it was
+    denoised more."""
+    try:
+        check_volume(img, name=name, stage=STAGE)
+        box = body_box(img) if crop else None
+        work, background = img, None
+        if box is not None:  # everything below scales with the voxels it sees
+            corrected = n4_correct(img, shrink=n4_shrink, cache=n4_cache) if n4 else img
+            background = background_of(corrected)  # the whole volume's, as uncropped
+            work = sitk.RegionOfInterest(corrected, box[1], box[0])
+            n4 = False
+            notes.append(f"cropped to the body's box: index {box[0]}, size {box[1]} voxels")
+        its = options.pop("denoise_iterations")
+        auto = its == "auto"
+        pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
+                         background=background, name=name,
+                         denoise_iterations=DENOISE_ITERATIONS if auto else its, **options)
+        a = sitk.GetArrayViewFromImage(pre)
+        seen = np.count_nonzero(np.abs(a[::2, ::2, ::2]) < 0.5) >= 100  # else air_noise guesses
+        sigma = air_noise(a)[1] if seen else float("nan")
+        if auto and sigma > NOISY_SIGMA:
+            pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
+                             background=background, name=name,
+                             denoise_iterations=2 * DENOISE_ITERATIONS, **options)
+            notes.append(f"noisy scan (background sigma {sigma:.3g} of the fat level after "
+                         f"{DENOISE_ITERATIONS} denoising iterations > {NOISY_SIGMA}): "
+                         f"denoised with {2 * DENOISE_ITERATIONS}")
+    except SegmentationError:
+        raise
+    except ValueError as exc:
+        raise SegmentationError(str(exc)) from None
+    return pre, work, box, sigma

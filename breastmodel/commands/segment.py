@@ -14,7 +14,7 @@ Config (TOML, all optional)::
     n4 = true            # N4 bias-field correction
     n4_shrink = 4
     isotropic_mm = 1.0   # omit to keep the grid
-    denoise_iterations = 3
+    denoise_iterations = "auto"  # 3, or 6 on a noisy scan; or a number
     denoise_method = "gradient"   # or "curvature" (slower)
 
     [segment]

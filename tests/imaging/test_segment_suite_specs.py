@@ -13,12 +13,14 @@ Before this change the contrast was misread on 16 of the suite's 33 scans (seeds
 
 import numpy as np
 import pytest
+import SimpleITK as sitk
 
 from imaging.io import read_volume
+from imaging.labels import BREAST, MUSCLE
 from imaging.qa import dice
-from imaging.segment import segment_volume
+from imaging.segment import SegmentationError, _breast_specks_off, segment_volume
 from imaging.segment_fat_suppressed import _muscle_air_edge
-from imaging.segment_regions import _muscle_start, glands_off_muscle
+from imaging.segment_regions import _interior_median, _muscle_start, glands_off_muscle
 
 
 def render_supine(seed: int, root):
@@ -170,3 +172,57 @@ def test_a_gland_reaching_the_skin_comes_off_whole():
     assert np.count_nonzero(blobs & gland) >= 0.95 * np.count_nonzero(gland)
     assert np.count_nonzero(blobs & skin) >= 0.9 * np.count_nonzero(skin)
     assert np.count_nonzero(kept & wall) >= 0.97 * np.count_nonzero(wall)
+
+
+# The suite's coil subject at 2 mm voxels and SNR 13 (seed 2, T2 fat suppressed), measured
+# when written on its FEBio-deformed scans (bench/segment_suite.py): breast / muscle Dice
+# 0.54-0.75 / 0.00-0.05 before (the thin muscle's level was read off the glands it touches;
+# the noise let the air into the thorax interior); 0.93-0.94 / 0.91-0.94 after, its two
+# estimates agreeing (the scan's noise flags it). The breast target (0.95) is still
+# missed there: the body's surface at 2 mm voxels takes about 800 air voxels and the breast
+# and muscle trade about 400 voxels each way; the bound below is what is met, not the target.
+def test_the_noisy_coarse_coil_scan_finds_its_thin_muscle(tmp_path):
+    spec, img, truth = render_supine(2, tmp_path)
+    assert spec.voxel_size == (2.0, 2.0, 2.0) and spec.snr < 15
+    res = segment_volume(img, gland=True, name="seed2/supine.nii.gz")
+    d = dice(res.labels, truth)
+    assert d["muscle"] >= 0.90 and d["breast"] >= 0.92, d
+    assert min(res.confidence["agreement"].values()) >= 0.9, res.confidence
+    assert any(n.startswith("noisy scan") for n in res.notes), res.notes
+    # and says it is of low confidence all the same: the noise, not the two estimates
+    assert not res.confidence["confident"] and res.confidence["noise"] > 0.03
+    assert any("noisy scan" in w for w in res.confidence["warnings"]), res.confidence
+
+
+def test_a_thin_layer_is_its_own_level_beside_a_thick_blob_it_touches():
+    # a muscle 3 voxels thick (level 0.5) touching a gland blob (1.6): two voxels in, only
+    # the blob is left, and it made the muscle's level 1.6 (its active contour then kept the
+    # blob alone)
+    a = np.full((40, 30, 40), 0.5, np.float32)
+    layer = np.zeros(a.shape, bool)
+    layer[:, 20:23] = True
+    blob = np.zeros(a.shape, bool)
+    blob[14:26, 8:20, 14:26] = True
+    a[blob] = 1.6
+    assert _interior_median(a, layer | blob, 0.0) == pytest.approx(0.5)
+    assert _interior_median(a, blob, 0.0) == pytest.approx(1.6)  # a thick mask: as before
+
+
+def test_breast_specks_take_their_surroundings_label():
+    labels = np.zeros((20, 30, 30), np.uint8)
+    labels[:, :10] = BREAST  # the breast
+    labels[:, 14:17] = MUSCLE
+    labels[5, 15, 5] = BREAST  # a speck in the muscle
+    labels[10, 25, 20] = BREAST  # and two behind it
+    labels[10:12, 22, 10:12] = BREAST
+    moved = _breast_specks_off(labels, 500.0)
+    assert moved == 6
+    assert labels[5, 15, 5] == MUSCLE and labels[10, 25, 20] == 0
+    assert (labels[10:12, 22, 10:12] == 0).all() and (labels[:, :10] == BREAST).all()
+
+
+def test_denoise_iterations_is_auto_or_a_whole_number():
+    img = sitk.Image([8, 8, 8], sitk.sitkFloat32)
+    for bad in ("x", -1, 2.5, True):
+        with pytest.raises(SegmentationError, match="denoise_iterations"):
+            segment_volume(img, denoise_iterations=bad, name="v.nii.gz")
