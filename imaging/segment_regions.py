@@ -168,7 +168,7 @@ def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_s
     ridge = (dt > 0) & (dt >= ndimage.maximum_filter(dt, size=3))
     if not ridge.any():
         return none
-    half = float(np.median(dt[ridge]))
+    half = float(np.median(_half_thickness(dt, ridge, sp, posterior[0])))
     r = thickness_factor * half
     core = _opening(dt, r, sp)
     if not core.any():
@@ -209,6 +209,19 @@ def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_s
                        2.0 * half + float(sp.max()))
     glab = _components(muscle & ~wall & around | blobs)[0]
     return np.isin(glab, np.unique(glab[blobs])) & (glab > 0)
+
+
+def _half_thickness(dt, ridge, sp, axis):
+    """Half the sheet's thickness at each ridge voxel (mm), along ``axis`` (the sheet's
+    normal, about). A distance map counts to the nearest outside voxel's centre: a sheet of
+    an even number n of voxels reads n / 2 on its two middle planes, an odd one (n + 1) / 2
+    on its single middle plane, half a voxel too many. Uncorrected, the 5-voxel wall of the
+    suite's slab small-001 (1.5 mm voxels) read 4.5 mm for 3.75, and its glands, 7-9
+    voxels thick on it, held no ball of 1.6 times that: every gland stayed in the muscle."""
+    twin = np.zeros(dt.shape, bool)  # a ridge neighbour of equal depth along the axis
+    for shift in (1, -1):
+        twin |= (np.roll(ridge, shift, axis) & (np.roll(dt, shift, axis) == dt))
+    return dt[ridge] - 0.5 * float(sp[axis]) * ~twin[ridge]
 
 
 def _wall_along(muscle, back, sp, posterior, depth_mm):
