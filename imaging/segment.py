@@ -139,22 +139,20 @@ def segment_volume(
     gland : bool
         Also label glandular tissue (3) inside the breast.
     n4, n4_shrink, isotropic_mm, denoise_iterations, denoise_method
-        Preprocessing options (see :func:`imaging.preprocess.preprocess`);
-        ``denoise_iterations="auto"``: :data:`DENOISE_ITERATIONS`, twice that on a noisy
-        scan (:func:`imaging.segment_contrast.prepare_volume`; a note says so).
+        Preprocessing (:func:`imaging.segment_contrast.prepare_volume`: ``"auto"``
+        denoising doubles on a noisy scan, and says so).
     skin_level : float
         Skin intensity as a fraction of fat; the air boundary sits at half of it.
     levelset_iterations : int
         Active-contour iterations per region (0: thresholds and morphology only).
     levelset_shrink : int
-        The active contours run on a grid this many times coarser, their boundaries then
-        settled at full resolution (:func:`levelset_refine`); 1: full resolution.
+        Active contours on a grid this many times coarser (:func:`levelset_refine`).
     curvature : float
         Curvature weight of the level sets.
     marker_diameter_mm : float
         Skin-marker diameter (markers are removed from the body).
     min_region_mm3 : float
-        Dark regions smaller than this are noise inside tissue, not air or thorax.
+        Dark regions and pieces of breast smaller than this are noise (in tissue, thorax).
     muscle_min_mm : float
         Mid-intensity layers thinner than this (skin, partial volume) cannot start the
         muscle; the muscle's active contour still reaches them.
@@ -167,8 +165,7 @@ def segment_volume(
         Work on the body's box (:func:`imaging.preprocess.body_box`); the label map is
         pasted back on the input grid. ``preprocessed`` is then the cropped volume.
     n4_cache : path, optional
-        Folder of bias corrections shared with later stages (see
-        :func:`imaging.preprocess.n4_correct`).
+        Folder of bias corrections shared with later stages (:func:`imaging.preprocess.n4_correct`).
 
     Returns
     -------
@@ -177,16 +174,11 @@ def segment_volume(
     if contrast != "auto" and contrast not in CONTRASTS:
         raise SegmentationError(f"{STAGE}: {name}: contrast must be 'auto' or one of "
                                 f"{CONTRASTS}, got {contrast!r}")
-    if denoise_iterations != "auto" and (not isinstance(denoise_iterations, int)
-                                         or isinstance(denoise_iterations, bool)
-                                         or denoise_iterations < 0):
-        raise SegmentationError(f"{STAGE}: {name}: denoise_iterations must be 'auto' or a "
-                                f"whole number >= 0, got {denoise_iterations!r}")
     notes: list[str] = []
-    pre, work, box, noise = prepare_volume(img, notes, crop=crop, n4=n4, n4_shrink=n4_shrink,
-                              n4_cache=n4_cache, isotropic_mm=isotropic_mm,
-                              denoise_iterations=denoise_iterations,
-                              denoise_method=denoise_method, name=name)
+    pre, work, box, noise = prepare_volume(
+        img, notes, crop=crop, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
+        isotropic_mm=isotropic_mm, denoise_iterations=denoise_iterations,
+        denoise_method=denoise_method, name=name)
     a = sitk.GetArrayFromImage(pre)
     sp = np.asarray(pre.GetSpacing(), float)[::-1]  # (z, y, x)
     vox_mm3 = float(np.prod(sp))
@@ -197,11 +189,8 @@ def segment_volume(
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
     _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3,
                 posterior=_posterior_axis(pre.GetDirection()))
-    labels = _label_map(a, pre, r, kind, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
+    labels = _label_map(a, pre, r, kind, notes, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
-    if r["specks_ml"] > 0:
-        notes.append(f"{r['specks_ml']:.2g} ml of breast in pieces under {min_region_mm3:g} mm^3 "
-                     "given to their surroundings (noise)")
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
     breast_ml = float(np.count_nonzero((labels == BREAST) | (labels == GLAND))) * vox_mm3 / 1e3
     conf = segmentation_confidence(cnr=r["cnr"], body=(r["body_start"], r["body"]),
@@ -213,14 +202,18 @@ def segment_volume(
                               np.asarray(r["markers_mm"]), tuple(notes), conf, kind)
 
 
-def _label_map(a, pre, r, kind, *, seeds, gland, vox_mm3, min_region_mm3) -> np.ndarray:
+def _label_map(a, pre, r, kind, notes, *, seeds, gland, vox_mm3, min_region_mm3) -> np.ndarray:
     """(nz, ny, nx) uint8 labels from the regions ``r``: breast is the body less the thorax
-    interior, the muscle and the markers; gland when asked for (its level and threshold go
-    into ``r["lv"]``), and always where a gland seed lies."""
+    interior, the muscle and the markers, save specks (a note says how much); gland when
+    asked for (its level and threshold go into ``r["lv"]``), and always where a gland seed
+    lies."""
     labels = np.zeros(a.shape, np.uint8)
     labels[r["body"] & ~r["thorax"] & ~r["muscle"] & ~r["marker_mask"]] = BREAST
     labels[r["muscle"]] = MUSCLE
-    r["specks_ml"] = _breast_specks_off(labels, min_region_mm3 / vox_mm3) * vox_mm3 / 1e3
+    specks_ml = _breast_specks_off(labels, min_region_mm3 / vox_mm3) * vox_mm3 / 1e3
+    if specks_ml > 0:
+        notes.append(f"{specks_ml:.2g} ml of breast in pieces under {min_region_mm3:g} mm^3 "
+                     "given to their surroundings (noise)")
     if gland:
         _label_gland(labels, a, r["lv"], r["air"], kind, vox_mm3=vox_mm3,
                      min_region_mm3=min_region_mm3)

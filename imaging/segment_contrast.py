@@ -173,6 +173,10 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
     background's noise after :data:`DENOISE_ITERATIONS` or the given iterations: NaN where
     too little background is seen); notes say when the volume was cropped and when it was
     denoised more."""
+    its = options.pop("denoise_iterations")
+    if its != "auto" and (not isinstance(its, int) or isinstance(its, bool) or its < 0):
+        raise SegmentationError(f"{STAGE}: {name}: denoise_iterations must be 'auto' or a "
+                                f"whole number >= 0, got {its!r}")
     try:
         check_volume(img, name=name, stage=STAGE)
         box = body_box(img) if crop else None
@@ -183,7 +187,6 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
             work = sitk.RegionOfInterest(corrected, box[1], box[0])
             n4 = False
             notes.append(f"cropped to the body's box: index {box[0]}, size {box[1]} voxels")
-        its = options.pop("denoise_iterations")
         auto = its == "auto"
         pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
                          background=background, name=name,
