@@ -129,3 +129,36 @@ def test_skins_made_by_worker_processes_equal_those_made_here(tmp_path, monkeypa
         with pytest.raises(ValueError, match="breast"):
             next(skins)
     assert not folder.exists()  # the workers' files are gone with the context
+
+
+def test_a_measured_skins_debris_is_dropped_and_its_breasts_kept():
+    # two breasts' skins (one 0.8 the other's size: a slab's) and a crumb (the rim's few
+    # triangles, or thorax the segmentation called breast): the crumb goes, with a warning
+    import warnings
+
+    from meshing.labels import MeshingWarning
+    from meshing.surface import _without_crumbs
+
+    big = tissue_surface(*_ball(20.0), target_edge_mm=1.5)
+    other = tissue_surface(*_ball(18.0), target_edge_mm=1.5)
+    crumb = (np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0]]) + [0, 0, 100],
+             np.array([[0, 1, 2], [1, 3, 2]]))
+    v, f, parts = np.zeros((0, 3)), np.zeros((0, 3), int), []
+    for pv, pf in (big, other, crumb):
+        f = np.vstack([f, pf + len(v)])
+        parts.append(len(pf))
+        v = np.vstack([v, pv + [len(parts) * 60.0, 0, 0]])
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        kept = _without_crumbs(v, f)
+    assert len(kept) == parts[0] + parts[1] and (kept == f[: len(kept)]).all()
+    assert any(issubclass(w.category, MeshingWarning) and "dropped 1 piece" in str(w.message)
+               for w in said)
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert (_without_crumbs(*big) == big[1]).all() and not said  # one piece: untouched
+
+
+def _ball(radius):
+    masks = tissue_masks(ellipsoid_labels((radius,) * 3, spacing=1.0), require_muscle=False)
+    return masks.breast, masks.grid
