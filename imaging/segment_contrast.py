@@ -188,6 +188,9 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
             n4 = False
             notes.append(f"cropped to the body's box: index {box[0]}, size {box[1]} voxels")
         auto = its == "auto"
+        if n4 and auto:  # the denoising may run twice: correct the bias once
+            work, n4 = n4_correct(sitk.Cast(img, sitk.sitkFloat32), shrink=n4_shrink,
+                                  cache=n4_cache), False
         pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
                          background=background, name=name,
                          denoise_iterations=DENOISE_ITERATIONS if auto else its, **options)
