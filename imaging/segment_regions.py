@@ -52,16 +52,12 @@ def _interior_median(a: np.ndarray, mask: np.ndarray, default: float) -> float:
     in each direction: a level estimate needs thousands of samples, not millions. Where that
     interior holds less than :data:`INTERIOR_MIN_SHARE` of the mask (a thin layer), one
     voxel in at full resolution, else the whole mask."""
-    sub, m = a[::2, ::2, ::2], mask[::2, ::2, ::2]
-    inner = ndimage.binary_erosion(m)
-    n_inner = np.count_nonzero(inner)
-    if n_inner > 50 and n_inner >= INTERIOR_MIN_SHARE * np.count_nonzero(m):
-        vals = sub[inner]
-    else:
-        inner = ndimage.binary_erosion(mask)
+    for arr, m in ((a[::2, ::2, ::2], mask[::2, ::2, ::2]), (a, mask)):
+        inner = ndimage.binary_erosion(m)
         n_inner = np.count_nonzero(inner)
-        vals = (a[inner] if n_inner > 50
-                and n_inner >= INTERIOR_MIN_SHARE * np.count_nonzero(mask) else a[mask])
+        if n_inner > 50 and n_inner >= INTERIOR_MIN_SHARE * np.count_nonzero(m):
+            return float(np.median(arr[inner]))
+    vals = a[mask]
     return float(np.median(vals)) if vals.size else default
 
 

@@ -152,9 +152,10 @@ def _drop_sheets(mask: np.ndarray, what: str, spacing, *, min_depth_voxels: floa
     sizes = np.bincount(lab.ravel())[1:]
     limit = min_depth_voxels * float(np.max(spacing))
     depth = np.full(n, np.inf)
+    largest = int(np.argmax(sizes))
     for k, box in enumerate(ndi.find_objects(lab)):
-        if k != np.argmax(sizes):
-            depth[k] = _depth_mm(mask, lab == k + 1, box, spacing, limit)
+        if k != largest:
+            depth[k] = _depth_mm(mask, lab, k + 1, box, spacing, limit)
     thin = depth < limit
     if not thin.any():
         return mask
@@ -165,9 +166,9 @@ def _drop_sheets(mask: np.ndarray, what: str, spacing, *, min_depth_voxels: floa
     return np.isin(lab, idx[~thin])
 
 
-def _depth_mm(mask: np.ndarray, part: np.ndarray, box, spacing, limit: float) -> float:
-    """How deep (mm) the deepest voxel of ``part`` (a component of ``mask`` inside the slices
-    ``box``) lies below the mask's surface or the field of view's edge; exact below
+def _depth_mm(mask: np.ndarray, lab: np.ndarray, k: int, box, spacing, limit: float) -> float:
+    """How deep (mm) the deepest voxel of component ``k`` of ``mask`` (labels ``lab``, inside
+    the slices ``box``) lies below the mask's surface or the field of view's edge; exact below
     ``limit``, at least ``limit`` otherwise. The distance transform runs on ``box`` grown by
     ``limit`` (and a voxel), not on the whole volume (1.7 s on a 357 x 119 x 221 map)."""
     sp = np.asarray(spacing, float)[::-1]  # (z, y, x)
@@ -179,7 +180,7 @@ def _depth_mm(mask: np.ndarray, part: np.ndarray, box, spacing, limit: float) ->
     pad = [(int(a == 0), int(b == n)) for a, b, n in zip(lo, hi, mask.shape)]
     edt = ndi.distance_transform_edt(np.pad(mask[crop], pad), sampling=sp)
     inner = tuple(slice(p[0], e - p[1]) for p, e in zip(pad, edt.shape))
-    return float(edt[inner][part[crop]].max())
+    return float(edt[inner][lab[crop] == k].max())
 
 
 def _fill_cavities(mask: np.ndarray, what: str, *, max_fraction: float = 0.05) -> np.ndarray:

@@ -125,7 +125,7 @@ def test_a_pieces_depth_from_its_crop_equals_the_whole_volumes_below_the_limit()
     checked = 0
     for k, box in enumerate(ndi.find_objects(lab)):
         whole = float(edt[lab == k + 1].max())
-        got = _depth_mm(mask, lab == k + 1, box, spacing, limit)
+        got = _depth_mm(mask, lab, k + 1, box, spacing, limit)
         if whole < limit:
             assert got == pytest.approx(whole, abs=1e-12)
             checked += 1
