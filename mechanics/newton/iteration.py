@@ -108,16 +108,19 @@ def _direction(nw: _Newton, A, R, u, rel: float, entry: dict, *, first: bool):
 def _line_search(nw: _Newton, u, du, lam: float, R):
     """Crisfield-type line search on R . du along the direction ``du`` from ``u`` (halving
     the step while an element inverts; one secant step when R . du does not fall by 10 %).
-    Returns (eta, ev, R, A) of the accepted point, or None when every trial inverts."""
+    Returns (eta, ev, R, A) of the accepted point, or None when every trial inverts;
+    ``nw.valid_eta`` is the largest trial length that inverted nothing (0 when none)."""
     opt = nw.opt
     s0 = float(R @ du)
     eta, accepted = 1.0, None
+    nw.valid_eta = 0.0
     for _ls in range(8):
         try:
             ev1, R1, A1 = nw.evaluate(u + eta * du, lam, tangent=True)
         except InvalidConfiguration:
             eta *= 0.5
             continue
+        nw.valid_eta = max(nw.valid_eta, eta)
         if not opt.line_search or s0 >= 0.0:
             accepted = (eta, ev1, R1, A1)
             break
@@ -151,6 +154,7 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
     energy0 = None  # |du_0 . R_0|, FEBio's reference of the energy norm
     exact_from = None  # iteration from which the step's linear solves are exact
     nw.exact = False
+    from_rest = not np.any(u[nw.free])
     for it in range(opt.max_newton + 1):
         if opt.deadline is not None and time.perf_counter() > opt.deadline:
             raise SolverError(f"mechanics: the time budget ran out at load {lam:.4g} "
@@ -187,6 +191,13 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
         accepted = _line_search(nw, u, du, lam, R)
         if accepted is None:
             return False, u, ev, "element inversion (J <= 0) along the Newton direction"
+        if it == 0 and from_rest and nw.valid_eta < 1.0 and opt.first_inversion_shrink > 0.0:
+            # From rest the first direction is the load times the tangent's response: where
+            # it inverts an element unless scaled by eta, the load is too large by about
+            # 1 / eta (see SolverOptions.first_inversion_shrink).
+            entry["shrink"] = nw.valid_eta * opt.first_inversion_shrink
+            return False, u, ev, (f"the first Newton direction inverts an element unless "
+                                  f"scaled by {nw.valid_eta:.3g}")
         eta, ev, R, A = accepted
         u = u + eta * du
         if energy0 is None:

@@ -19,6 +19,21 @@ class SolverOptions:
     min_step : smallest load increment before giving up
     max_cutbacks : total cut-backs allowed in one solve
     grow_below : grow the increment (x2) after a step that took at most this many iterations
+    predictor : a step's first iterate: "converged" (the last converged state, moved along the
+        initial guess if one was given; a step that fails from there is tried once more from
+        the extrapolation of the last two converged states before it is cut back) or
+        "secant" (that extrapolation alone). Measured (``bench/step_control.py``): on the
+        suite's meshes at the paper's softest moduli the extrapolation cost up to 2.6x the
+        Newton iterations of starting from the converged state; near a Gent fascia's limit
+        stretch the converged state stalled where the extrapolation converged
+    first_inversion_shrink : where > 0, a first step from rest whose first Newton direction
+        inverts an element unless scaled by eta (the line search's largest valid length) is
+        cut back at once to ``eta * first_inversion_shrink`` of its load instead of being
+        left to Newton (from rest that direction is the load times the tangent's response).
+        Off by default: measured with 0.5 (``bench/step_control.py``,
+        ``bench/effects_box.py``), the softest corner on the 17k-tet suite mesh took 39
+        Newton iterations against 52, but on the suite's small meshes many box points that
+        converge at full load in one step of 10-13 iterations took 22-46 in 3-5 steps
     linear_solver : "auto" (PARDISO if installed, else scipy), "scipy" or "pardiso"
     line_search : Crisfield-type line search on R . du
     reuse_factor : solve with GMRES preconditioned by the last factorisation (that of an
@@ -79,6 +94,8 @@ class SolverOptions:
     min_step: float = 1e-4
     max_cutbacks: int = 20
     grow_below: int = 6
+    predictor: str = "converged"
+    first_inversion_shrink: float = 0.0
     linear_solver: str = "auto"
     line_search: bool = True
     reuse_factor: bool = True

@@ -1,5 +1,5 @@
 """Adaptive load stepping of one solve: the load path from 0 to 1 through the effects' path
-points, a predictor from the last converged states, the Newton iterations of each step,
+points, the predictor, the Newton iterations of each step,
 growth after easy steps and cut-backs after failed ones, and the end of a solve that runs
 out of cut-backs (a numerical failure, or a verdict that the model has no equilibrium)."""
 
@@ -75,24 +75,27 @@ def _next_load(path: _Path, stops: list[float]) -> float:
     return new_lam
 
 
-def _predictor(nw: _Newton, path: _Path, new_lam: float, guess) -> np.ndarray:
-    """The step's first iterate: the last two converged states extrapolated, else the
-    initial guess scaled to the load; the constrained dofs at their scaled targets."""
+def _predictor(nw: _Newton, path: _Path, new_lam: float, guess, kind: str) -> np.ndarray:
+    """The step's first iterate (``kind``, see ``SolverOptions.predictor``): the last
+    converged state moved along the initial guess by the load increment (the guess, a nearby
+    problem's solution, stands for the path ``load * guess``), or without a guess the
+    converged state itself; with "secant" the last two converged states extrapolated; the
+    constrained dofs at their scaled targets."""
     lam, u, prev = path.lam, path.u, path.prev
     u_try = u.copy()
-    if prev is not None and lam > prev[0]:
+    if prev is not None and lam > prev[0] and kind == "secant":
         u_try = u + (new_lam - lam) / (lam - prev[0]) * (u - prev[1])
     elif guess is not None:
-        u_try = guess * new_lam
+        u_try = u + (new_lam - lam) * guess
     u_try[nw.fixed] = new_lam * nw.target[nw.fixed]
     return u_try
 
 
-def _load_step(nw: _Newton, path: _Path, new_lam: float, guess):
+def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     """One load step from the path's last converged state to ``new_lam``: the effects'
-    ``begin_step``, the predictor (the converged state itself where the extrapolation
-    inverts an element), the Newton iterations; its log entry is added to the path.
-    Returns (ok, u, ev, entry)."""
+    ``begin_step``, the predictor ``kind`` (the converged state itself where moving the
+    constrained dofs inverts an element), the Newton iterations; its log entry (with
+    ``predictor``) is added to the path. Returns (ok, u, ev, entry)."""
     model, X = nw.model, nw.X
     x_conv = X + path.u.reshape(-1, 3)
     for eff in model.effects:
@@ -101,7 +104,8 @@ def _load_step(nw: _Newton, path: _Path, new_lam: float, guess):
     entry = {"step": len(path.steps) + 1, "load": new_lam, "newton": 0, "residuals": [],
              "converged": False, "cutback": None}
     nw.trace = entry["linear"] = []
-    u_try = _predictor(nw, path, new_lam, guess)
+    entry["predictor"] = kind
+    u_try = _predictor(nw, path, new_lam, guess, kind)
     try:
         ev, R, A = nw.evaluate(u_try, new_lam, tangent=True)
     except InvalidConfiguration:
@@ -150,7 +154,7 @@ def _cut_back(nw: _Newton, path: _Path, new_lam: float, entry: dict, t_start: fl
                           f"{_mesh_hint(model.mesh)}",
                           _state(nw, path, False, None, t_start, rss_start))
     path.cutbacks += 1
-    path.dlam *= 0.5
+    path.dlam *= entry.get("shrink", 0.5)
     if path.dlam >= opt.min_step and path.cutbacks <= opt.max_cutbacks:
         return
     cutbacks = path.cutbacks
@@ -188,7 +192,12 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
     stops = _path_stops(model)
     while path.lam < 1.0 - 1e-12:
         new_lam = _next_load(path, stops)
-        ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess)
+        ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, options.predictor)
+        if not ok and options.predictor == "converged" and path.prev is not None:
+            # the same step once more from the extrapolated path before cutting back: the
+            # converged state is the better start on the softest moduli, the extrapolation
+            # near a Gent fascia's limit stretch (bench/step_control.py)
+            ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, "secant")
         if ok:
             _advance(path, new_lam, u_try, ev, entry, options)
         else:

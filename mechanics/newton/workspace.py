@@ -24,6 +24,9 @@ class _Newton(_Directions):
     """One solve's working data (not public)."""
 
     def __init__(self, model: Model, X: np.ndarray, options: SolverOptions):
+        if options.predictor not in ("converged", "secant"):
+            raise ValueError(f"mechanics: predictor must be 'converged' or 'secant', "
+                             f"got {options.predictor!r}")
         self.model, self.X, self.opt = model, X, options
         self.solid = _solid(model, X)
         self.n = len(X)
@@ -59,6 +62,7 @@ class _Newton(_Directions):
         self.exact = False
         self.exact_steps = 0
         self.last_linear_residual = float("nan")  # relative, of the last Newton direction
+        self.valid_eta = 1.0  # the last line search's largest trial that inverted nothing
 
     def _lap(self, phase: str, t0: float, c0: float) -> tuple[float, float]:
         t1, c1 = time.perf_counter(), time.process_time()
