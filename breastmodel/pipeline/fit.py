@@ -137,6 +137,10 @@ def optimise(problem_dir: Path, settings: Mapping[str, Any],
     return _held_out(_summary(ev.history, "optimizer"), problem_dir, settings, work_dir, warm)
 
 
+class _StartFailed(Exception):
+    """The least squares' first evaluation failed (its residual's length is unknown)."""
+
+
 class _BudgetSpent(Exception):
     pass
 
@@ -214,8 +218,10 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
         rec = ev(dict(zip(names, np.exp(z).tolist())))
         res = rec.get("residual") or {}
         if rec.get("error") or not all(p in res for p in calibrate):
+            if not size:  # the start failed: no residual's length to penalise with
+                raise _StartFailed(rec.get("error") or "no residual at a calibrated position")
             # a failed solve: a large residual pushes the trust region back
-            return np.full(size[0] if size else 1, _PENALTY_MM)
+            return np.full(size[0], _PENALTY_MM)
         r = np.concatenate([np.asarray(res[p], float) for p in calibrate])
         if not size:
             size.append(len(r))
@@ -244,6 +250,8 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
         ident = identifiability(sol.jac, names)
     except _BudgetSpent:
         ident = None
+    except _StartFailed as exc:  # _summary below names the error (every evaluation failed)
+        stop, ident = f"the starting point failed: {exc}", None
     res = _held_out(_summary(ev.history, "least_squares"), problem_dir, settings, work_dir,
                     warm)
     return {**res, "termination": stop, "uncertainty": uncertainty, "identifiability": ident}

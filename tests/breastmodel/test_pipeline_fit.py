@@ -168,6 +168,27 @@ def test_least_squares_converges_in_few_simulations_and_resumes(monkeypatch, tmp
     assert len(calls) == n and again["best"] == res["best"]  # replayed from storage
 
 
+def test_least_squares_whose_start_fails_says_so(monkeypatch, tmp_path):
+    # a failed first evaluation has no residual length: scipy stopped with a shape error once
+    # a later evaluation returned the full residual
+    calls: list = []
+    good = _analytic_residual(calls)
+
+    def evaluate(params, *a, **kw):
+        if not calls:
+            calls.append(dict(params))
+            return {"objective": None, "mhd_mm": {}, "forward_solves": 1,
+                    "error": "SolverError: diverged"}
+        return good(params, *a, **kw)
+
+    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    with pytest.raises(RuntimeError, match=r"every one of 1 evaluations failed; first error: "
+                                           r"SolverError: diverged"):
+        fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=40,
+                             work_dir=tmp_path / "w",
+                             x0={"materials.breast_left.E": 2.5, "effects.skin.E": 2.0})
+
+
 def test_least_squares_keeps_going_through_a_parameter_of_exactly_one(monkeypatch, tmp_path):
     # a relative finite-difference step vanishes at ln p = 0; the stored evaluations are keyed
     # by 6 digits, so such a step would return the same residual and stop the search there
