@@ -19,18 +19,20 @@ class SolverOptions:
     min_step : smallest load increment before giving up
     max_cutbacks : total cut-backs allowed in one solve
     grow_below : grow the increment (x2) after a step that took at most this many iterations
-    predictor : a step's first iterate: "converged" (the last converged state, moved along the
-        initial guess if one was given; a step that fails from there is tried once more from
-        the extrapolation of the last two converged states before it is cut back) or
-        "secant" (that extrapolation alone). Measured (``bench/step_control.py``): on the
-        suite's meshes at the paper's softest moduli the extrapolation cost up to 2.6x the
-        Newton iterations of starting from the converged state; near a Gent fascia's limit
-        stretch the converged state stalled where the extrapolation converged
+    predictor : a step's first iterate: "secant" (the last two converged states
+        extrapolated; before the first converged step the initial guess scaled to the load)
+        or "converged" (the last converged state, moved along the initial guess if one was
+        given; a step that fails from there is tried once more from the extrapolation
+        before it is cut back). Measured (``bench/step_control.py``): at the paper's softest
+        moduli on the suite's meshes "converged" took 0.4-1x the Newton iterations (the 17k
+        mesh's softest corner 52 against 75), but it is not the default: in the slow
+        diagnosis tests a sliding candidate's solve diverged with it at load 0.75 (13
+        cut-backs) where the extrapolation converges
     first_inversion_shrink : where > 0, a first step from rest whose first Newton direction
         inverts an element unless scaled by eta (the line search's largest valid length) is
         cut back at once to ``eta * first_inversion_shrink`` of its load instead of being
         left to Newton (from rest that direction is the load times the tangent's response).
-        Off by default: measured with 0.5 (``bench/step_control.py``,
+        Off by default: measured with 0.5 and "converged" (``bench/step_control.py``,
         ``bench/effects_box.py``), the softest corner on the 17k-tet suite mesh took 39
         Newton iterations against 52, but on the suite's small meshes many box points that
         converge at full load in one step of 10-13 iterations took 22-46 in 3-5 steps
@@ -94,7 +96,7 @@ class SolverOptions:
     min_step: float = 1e-4
     max_cutbacks: int = 20
     grow_below: int = 6
-    predictor: str = "converged"
+    predictor: str = "secant"
     first_inversion_shrink: float = 0.0
     linear_solver: str = "auto"
     line_search: bool = True

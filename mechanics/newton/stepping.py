@@ -194,7 +194,7 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
         new_lam = _next_load(path, stops)
         ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, options.predictor)
         if not ok and options.predictor == "converged" and path.prev is not None:
-            # the same step once more from the extrapolated path before cutting back: the
+            # the same step once more from the extrapolation before cutting back: the
             # converged state is the better start on the softest moduli, the extrapolation
             # near a Gent fascia's limit stretch (bench/step_control.py)
             ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, "secant")
