@@ -139,6 +139,11 @@ def main() -> int:
                     help="JSON: effect tables of the paper-like model to replace")
     ap.add_argument("--stagnate-after", type=int, default=SolverOptions.stagnate_after,
                     help="SolverOptions.stagnate_after (0: no early cut-back)")
+    ap.add_argument("--predictor", default=SolverOptions.predictor,
+                    help="SolverOptions.predictor ('secant' or 'converged')")
+    ap.add_argument("--first-inversion-shrink", type=float,
+                    default=SolverOptions.first_inversion_shrink,
+                    help="SolverOptions.first_inversion_shrink (0: off)")
     add_mesh_arguments(ap, phantom_size=8.0)
     ap.add_argument("--suite-mesh", default=None,
                     help="comma-separated Mesh .npz files made by the pipeline's meshing stage "
@@ -153,7 +158,8 @@ def main() -> int:
     sliding = json.loads(args.sliding)
     changes = json.loads(args.changes)
     options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks,
-                            stagnate_after=args.stagnate_after)
+                            stagnate_after=args.stagnate_after, predictor=args.predictor,
+                            first_inversion_shrink=args.first_inversion_shrink)
     if args.suite_mesh:
         meshes = [(Path(p).stem, *suite_mesh(p)) for p in args.suite_mesh.split(",")]
     else:
@@ -166,7 +172,9 @@ def main() -> int:
         "changes": changes,
         "solver": {"max_newton": args.max_newton, "max_cutbacks": args.max_cutbacks,
                    "stagnate_after": args.stagnate_after,
-                   "singular_shift": SolverOptions.singular_shift},
+                   "singular_shift": SolverOptions.singular_shift,
+                   "predictor": args.predictor,
+                   "first_inversion_shrink": args.first_inversion_shrink},
         "points": [],
     }
     out = Path(args.out)
