@@ -93,8 +93,8 @@ def _predictor(nw: _Newton, path: _Path, new_lam: float, guess, kind: str) -> np
 
 def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     """One load step from the path's last converged state to ``new_lam``: the effects'
-    ``begin_step``, the predictor ``kind`` (the converged state itself where moving the
-    constrained dofs inverts an element), the Newton iterations; its log entry (with
+    ``begin_step``, the predictor ``kind`` (the converged state itself where the predictor
+    inverts an element), the Newton iterations; its log entry (with
     ``predictor``) is added to the path. Returns (ok, u, ev, entry)."""
     model, X = nw.model, nw.X
     x_conv = X + path.u.reshape(-1, 3)
