@@ -71,14 +71,15 @@ def _stagnating(opt: SolverOptions, res: list[float], it: int, rel: float,
                      or min(res[it - 4:]) > 0.5 * min(res[:max(it - 4, 1)])))
 
 
-def _direction(nw: _Newton, A, R, u, rel: float, entry: dict, *, first: bool):
+def _direction(nw: _Newton, A, R, u, rel: float, entry: dict, *, first_from_rest: bool):
     """The Newton correction at ``u``: (du, None), or (None, why) when the tangent is
     singular and no regularised matrix (:meth:`_Newton.regularized`) gives a direction.
-    ``first``: the step's first iteration. Counts the shifted solves in ``entry``."""
+    ``first_from_rest``: the first iteration of a step from rest (no free displacement).
+    Counts the shifted solves in ``entry``."""
     opt = nw.opt
     try:
         A_first = None
-        if first and opt.singular_shift > 0.0 and not np.any(u[nw.free]):
+        if first_from_rest and opt.singular_shift > 0.0:
             # From rest every contact gap is zero: frictional sliding gives no tangential
             # stiffness and a body held by friction alone has an exactly singular but
             # consistent tangent, which some factorisations solve without complaint,
@@ -181,7 +182,7 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
             exact_from = entry["exact_linear_from"] = it
             nw.exact = True
             nw.exact_steps += 1
-        du, failure = _direction(nw, A, R, u, rel, entry, first=it == 0)
+        du, failure = _direction(nw, A, R, u, rel, entry, first_from_rest=it == 0 and from_rest)
         if du is None:
             return False, u, ev, failure
         entry["newton"] += 1
