@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["identifiability", "lsq_uncertainty"]
+__all__ = ["identifiability", "log_sd", "lsq_uncertainty"]
 
 
 def lsq_uncertainty(J: np.ndarray, r: np.ndarray, p: np.ndarray,
@@ -29,16 +29,24 @@ def lsq_uncertainty(J: np.ndarray, r: np.ndarray, p: np.ndarray,
     dict
         path -> sd in the parameter's unit; empty when m <= n or J^T J is singular.
     """
+    sd = log_sd(J, r)
+    if sd is None:
+        return {}
+    return {k: float(v) for k, v in zip(names, np.asarray(p, float) * sd)}
+
+
+def log_sd(J: np.ndarray, r: np.ndarray) -> np.ndarray | None:
+    """The (n,) 1-sd uncertainties of ln p of :func:`lsq_uncertainty`; None when m <= n or
+    J^T J is singular."""
     J, r = np.asarray(J, float), np.asarray(r, float)
     m, n = J.shape
     if m <= n:
-        return {}
+        return None
     try:
         cov = float(r @ r) / (m - n) * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
-        return {}
-    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    return {k: float(v) for k, v in zip(names, np.asarray(p, float) * sd)}
+        return None
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None))
 
 
 def identifiability(J: np.ndarray, names: list[str], *, separable: float = 0.95,

@@ -328,3 +328,33 @@ def test_skin_residual_is_continuous_where_the_closest_point_is_on_the_measured_
     inside = np.array([[20.0, 20.0, 3.0], [20.0, 20.0, -3.0],
                        [40.0 - RIM_FADE_MM / 2, 20.0, 3.0]])
     assert np.allclose(skin_residual(inside, V, F), [3.0, -3.0, 1.5], atol=0.05 * 3.0)
+
+
+def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypatch, tmp_path):
+    """Noisy residuals, nearly linear in ln p: once a step moves every parameter by less than
+    half its standard deviation the fit stops (saying so), within that of the optimum it
+    would reach by scipy's own tolerances alone, in fewer evaluations."""
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(300, 2))
+    noise = 2.0 * rng.normal(size=300)
+
+    def evaluate(params, problem_dir, settings, residuals=False, **kw):
+        z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
+                      math.log(params["effects.skin.E"] / S_OPT)])
+        r = A @ z + (z @ z) + noise
+        return {"objective": float(r @ r), "mhd_mm": {"prone": 0.0},
+                "forward_solves": 4, "error": None, "residual": {"prone": r.tolist()}}
+
+    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
+    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
+                               work_dir=tmp_path / "a", x0=x0)
+    monkeypatch.setattr(fitmod, "_STOP_SD", 0.0)
+    full = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
+                                work_dir=tmp_path / "b", x0=x0)
+    assert "standard deviation" in res["termination"]
+    assert "standard deviation" not in full["termination"]
+    assert res["n_simulations"] < full["n_simulations"]
+    for name in PARAMS:
+        assert abs(res["best"]["params"][name] - full["best"]["params"][name]) \
+            < 0.5 * full["uncertainty"][name]
