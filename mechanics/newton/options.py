@@ -27,7 +27,11 @@ class SolverOptions:
         moduli on the suite's meshes "converged" took 0.4-1x the Newton iterations (the 17k
         mesh's softest corner 52 against 75), but it is not the default: in the slow
         diagnosis tests a sliding candidate's solve diverged with it at load 0.75 (13
-        cut-backs) where the extrapolation converges
+        cut-backs) where the extrapolation converges. That contact with friction has more
+        than one equilibrium: from the same converged state at load 0.25 the two
+        predictors converge at 0.5 to states up to 0.52 mm apart (56 nodes over 0.1 mm);
+        the branch the converged state follows ends near 0.749 (every step beyond stalls
+        at a relative residual of about 0.05, as at a fold), the other reaches full load
     first_inversion_shrink : where > 0, a first step from rest whose first Newton direction
         inverts an element unless scaled by eta (the line search's largest valid length) is
         cut back at once to ``eta * first_inversion_shrink`` of its load instead of being
