@@ -132,31 +132,63 @@ def test_skins_made_by_worker_processes_equal_those_made_here(tmp_path, monkeypa
 
 
 def test_a_measured_skins_debris_is_dropped_and_its_breasts_kept():
-    # two breasts' skins (one 0.8 the other's size: a slab's) and a crumb (the rim's few
-    # triangles, or thorax the segmentation called breast): the crumb goes, with a warning
+    # two breasts' skins (one 0.8 the other's size: a slab's), a piece of skin 3 % of the
+    # larger one's area cut off where the fat over the muscle is thin (full-000's prone), a
+    # crumb (the rim's few triangles) and a cavity's surface (thorax the segmentation called
+    # breast, looking onto the thorax's own background): crumb and cavity go, with warnings
     import warnings
 
     from meshing.labels import MeshingWarning
-    from meshing.surface import _without_crumbs
+    from meshing.surface import _without_debris
 
     big = tissue_surface(*_ball(20.0), target_edge_mm=1.5)
     other = tissue_surface(*_ball(18.0), target_edge_mm=1.5)
-    crumb = (np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0]]) + [0, 0, 100],
+    cut_off = tissue_surface(*_ball(3.5), target_edge_mm=1.0)
+    crumb = (np.array([[0.0, 0, 0], [2, 0, 0], [0, 2, 0], [2, 2, 0]]),
              np.array([[0, 1, 2], [1, 3, 2]]))
-    v, f, parts = np.zeros((0, 3)), np.zeros((0, 3), int), []
-    for pv, pf in (big, other, crumb):
+    cavity = tissue_surface(*_ball(5.0), target_edge_mm=1.5)
+    v, f, parts, outside = np.zeros((0, 3)), np.zeros((0, 3), int), [], []
+    for (pv, pf), air in ((big, 1), (other, 1), (cut_off, 1), (crumb, 1), (cavity, 2)):
         f = np.vstack([f, pf + len(v)])
         parts.append(len(pf))
+        outside.append(np.full(len(pf), air))
         v = np.vstack([v, pv + [len(parts) * 60.0, 0, 0]])
+    share = triangle_areas(*cut_off).sum() / triangle_areas(*big).sum()
+    assert 0.02 < share < 0.05  # the old rule (5 %) dropped such a piece
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
-        kept = _without_crumbs(v, f)
-    assert len(kept) == parts[0] + parts[1] and (kept == f[: len(kept)]).all()
-    assert any(issubclass(w.category, MeshingWarning) and "dropped 1 piece" in str(w.message)
-               for w in said)
+        kept = _without_debris(v, f, np.concatenate(outside))
+    n_skin = sum(parts[:3])
+    assert len(kept) == n_skin and (kept == f[:n_skin]).all()
+    said = [str(w.message) for w in said if issubclass(w.category, MeshingWarning)]
+    assert any("dropped 1 piece(s)" in m and "crumbs" in m for m in said)
+    assert any("dropped 1 piece(s)" in m and "cavity" in m for m in said)
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
-        assert (_without_crumbs(*big) == big[1]).all() and not said  # one piece: untouched
+        alone = _without_debris(*big, np.ones(len(big[1]), int))
+        assert (alone == big[1]).all() and not said  # one piece: untouched
+
+
+def test_the_air_a_skin_looks_onto_tells_the_outside_from_a_cavity():
+    # a slab of breast across the whole grid parts its background in two: the triangles of
+    # each face look onto their own side's component, none onto tissue
+    import dataclasses
+
+    from meshing.surface import _outside_component
+
+    masks = tissue_masks(touching_boxes_labels(size=(30.0, 30.0, 30.0), split_y=15.0,
+                                               spacing=1.0), require_muscle=False)
+    slab = np.zeros_like(masks.breast)
+    slab[:, 12:18, :] = True
+    masks = dataclasses.replace(masks, breast=slab, muscle=np.zeros_like(slab))
+    v, f = tissue_surface(masks.breast, masks.grid, target_edge_mm=2.0)
+    n = triangle_normals(v, f)
+    comp = _outside_component(v, f, masks)
+    front, back = n[:, 1] < -0.9, n[:, 1] > 0.9
+    assert front.sum() > 50 and back.sum() > 50
+    # (0: the few triangles at the grid's edge that look out of it)
+    (a,), (b,) = set(comp[front]) - {0}, set(comp[back]) - {0}
+    assert a != b and np.mean(comp[front | back] == 0) < 0.05
 
 
 def _ball(radius):
