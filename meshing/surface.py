@@ -145,11 +145,12 @@ def skin_surface(
 
 #: Pieces of a measured skin with less than this share of its largest piece's area are
 #: dropped as crumbs: a few triangles left on the rim once the faces near muscle and on the
-#: field of view's cut are taken off (at most 0.1 % of the largest on the suite). Bigger
-#: pieces are real skin cut off where the fat over the muscle is thinner than a voxel (the
-#: full-size subject full-000's prone right breast: 3.4 and 4.8 %, 2000 mm^2 that a 5 %
-#: rule dropped, and its prone MHD read 2.45 mm for 1.20), unless they face other air
-#: (:func:`_without_debris`).
+#: field of view's cut are taken off (looking onto the outside air, at most 0.8 % of the
+#: largest on the own segmentations of small-000, -001, -002, -006, -009 and full-000).
+#: Bigger pieces are real skin cut off where the fat over the muscle is thinner than a voxel
+#: (the full-size subject full-000's right breast: 2.4-4.8 % in prone and tilted, 2000-3000
+#: mm^2 that a 5 % rule dropped, and its prone MHD read 2.45 mm for 1.05), unless they look
+#: onto other air (:func:`_without_debris`).
 SKIN_CRUMB_SHARE = 0.01
 
 
