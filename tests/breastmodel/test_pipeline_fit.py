@@ -200,20 +200,26 @@ def test_least_squares_keeps_going_through_a_parameter_of_exactly_one(monkeypatc
     assert res["best"]["params"]["materials.breast_left.E"] == pytest.approx(E_OPT, rel=2e-3)
 
 
-def test_least_squares_uncertainty_matches_the_linear_model(monkeypatch, tmp_path):
-    """Residuals linear in ln p plus seeded noise: the reported 1-sd equals p sqrt(s^2
-    (A^T A)^-1) of the exact linear model, and the truth lies within 3 sd of the estimate."""
-    rng = np.random.default_rng(1)
+def _noisy_residual(*, seed, noise_sd, curvature):
+    """(A, noise, evaluate): 300 skin residuals A z + curvature |z|^2 + noise in z = ln(p /
+    p_opt) of the breast and skin moduli, with seeded noise; the objective is the mean |r|."""
+    rng = np.random.default_rng(seed)
     A = rng.normal(size=(300, 2))
-    noise = 0.3 * rng.normal(size=300)
+    noise = noise_sd * rng.normal(size=300)
 
     def evaluate(params, problem_dir, settings, residuals=False, **kw):
         z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
                       math.log(params["effects.skin.E"] / S_OPT)])
-        r = A @ z + noise
+        r = A @ z + curvature * (z @ z) + noise
         return {"objective": float(np.mean(np.abs(r))), "mhd_mm": {"prone": 0.0},
                 "forward_solves": 4, "error": None, "residual": {"prone": r.tolist()}}
+    return A, noise, evaluate
 
+
+def test_least_squares_uncertainty_matches_the_linear_model(monkeypatch, tmp_path):
+    """Residuals linear in ln p plus seeded noise: the reported 1-sd equals p sqrt(s^2
+    (A^T A)^-1) of the exact linear model, and the truth lies within 3 sd of the estimate."""
+    A, noise, evaluate = _noisy_residual(seed=1, noise_sd=0.3, curvature=0.0)
     monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
     res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=40,
                                work_dir=tmp_path / "w",
@@ -334,17 +340,7 @@ def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypat
     """Noisy residuals, nearly linear in ln p: once a step moves every parameter by less than
     half its standard deviation the fit stops (saying so), within that of the optimum it
     would reach by scipy's own tolerances alone, in fewer evaluations."""
-    rng = np.random.default_rng(3)
-    A = rng.normal(size=(300, 2))
-    noise = 2.0 * rng.normal(size=300)
-
-    def evaluate(params, problem_dir, settings, residuals=False, **kw):
-        z = np.array([math.log(params["materials.breast_left.E"] / E_OPT),
-                      math.log(params["effects.skin.E"] / S_OPT)])
-        r = A @ z + (z @ z) + noise
-        return {"objective": float(r @ r), "mhd_mm": {"prone": 0.0},
-                "forward_solves": 4, "error": None, "residual": {"prone": r.tolist()}}
-
+    _, _, evaluate = _noisy_residual(seed=3, noise_sd=2.0, curvature=1.0)
     monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
     x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
     res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
