@@ -195,8 +195,9 @@ def _without_debris(v: np.ndarray, f: np.ndarray, outside: np.ndarray) -> np.nda
 
     air = looks_onto(int(area.argmax()))
     crumb = (area < SKIN_CRUMB_SHARE * area.max()) & (area > 0)
-    behind = np.array([area[k] > 0 and not crumb[k] and looks_onto(k) not in (0, air)
-                       for k in range(n)])
+    # (air 0: the largest piece sees no background, and nothing is called a cavity)
+    behind = np.array([air > 0 and area[k] > 0 and not crumb[k]
+                       and looks_onto(k) not in (0, air) for k in range(n)])
     for drop, why in ((crumb, f"under {SKIN_CRUMB_SHARE:.0%} of its largest's area: crumbs "
                               "on the rim"),
                       (behind, "looking onto other air than the skin does: the surface of "
