@@ -109,19 +109,18 @@ def _direction(nw: _Newton, A, R, u, rel: float, entry: dict, *, first_from_rest
 def _line_search(nw: _Newton, u, du, lam: float, R):
     """Crisfield-type line search on R . du along the direction ``du`` from ``u`` (halving
     the step while an element inverts; one secant step when R . du does not fall by 10 %).
-    Returns (eta, ev, R, A) of the accepted point, or None when every trial inverts;
-    ``nw.valid_eta`` is the largest trial length that inverted nothing (0 when none)."""
+    Returns ((eta, ev, R, A) of the accepted point, or None when every trial inverts; the
+    first trial length that inverted nothing, 0 when none)."""
     opt = nw.opt
     s0 = float(R @ du)
-    eta, accepted = 1.0, None
-    nw.valid_eta = 0.0
+    eta, accepted, valid = 1.0, None, 0.0
     for _ls in range(8):
         try:
             ev1, R1, A1 = nw.evaluate(u + eta * du, lam, tangent=True)
         except InvalidConfiguration:
             eta *= 0.5
             continue
-        nw.valid_eta = max(nw.valid_eta, eta)
+        valid = eta  # every path below ends the search
         if not opt.line_search or s0 >= 0.0:
             accepted = (eta, ev1, R1, A1)
             break
@@ -142,7 +141,7 @@ def _line_search(nw: _Newton, u, du, lam: float, R):
                 abs(float(R2 @ du)) < abs(s1):
             accepted = (new_eta, ev2, R2, A2)
         break
-    return accepted
+    return accepted, valid
 
 
 def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
@@ -189,16 +188,16 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
         if energy0 is None:
             R0_free = R[nw.free].copy()
         entry.setdefault("linear_residuals", []).append(nw.last_linear_residual)
-        accepted = _line_search(nw, u, du, lam, R)
+        accepted, valid_eta = _line_search(nw, u, du, lam, R)
         if accepted is None:
             return False, u, ev, "element inversion (J <= 0) along the Newton direction"
-        if it == 0 and from_rest and nw.valid_eta < 1.0 and opt.first_inversion_shrink > 0.0:
+        if it == 0 and from_rest and valid_eta < 1.0 and opt.first_inversion_shrink > 0.0:
             # From rest the first direction is the load times the tangent's response: where
             # it inverts an element unless scaled by eta, the load is too large by about
             # 1 / eta (see SolverOptions.first_inversion_shrink).
-            entry["shrink"] = nw.valid_eta * opt.first_inversion_shrink
+            entry["shrink"] = valid_eta * opt.first_inversion_shrink
             return False, u, ev, (f"the first Newton direction inverts an element unless "
-                                  f"scaled by {nw.valid_eta:.3g}")
+                                  f"scaled by {valid_eta:.3g}")
         eta, ev, R, A = accepted
         u = u + eta * du
         if energy0 is None:

@@ -62,7 +62,6 @@ class _Newton(_Directions):
         self.exact = False
         self.exact_steps = 0
         self.last_linear_residual = float("nan")  # relative, of the last Newton direction
-        self.valid_eta = 1.0  # the last line search's largest trial that inverted nothing
 
     def _lap(self, phase: str, t0: float, c0: float) -> tuple[float, float]:
         t1, c1 = time.perf_counter(), time.process_time()
