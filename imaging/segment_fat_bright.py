@@ -117,10 +117,11 @@ def _split_dark(a, t_dark, lv, *, vox_mm3, min_region_mm3, name):
     big = big[big > 0]
     air = np.zeros(a.shape, bool)
     thorax = np.zeros(a.shape, bool)
-    # Air meets skin/fat, the thorax interior meets muscle: judge by the mean of a shell.
-    # (on every second voxel: the shell 2-6 voxels out is what matters, not its detail)
-    sub_lab, sub_a = lab[::2, ::2, ::2], a[::2, ::2, ::2]
-    objs = ndimage.find_objects(sub_lab)
+    # Air meets skin/fat, the thorax interior meets muscle: judge by the median of the shell
+    # one voxel out (past the partial volume). A shell farther out (it was 4-6 voxels, on
+    # every second voxel) passes a 6 mm muscle into the fat behind it and calls the thorax
+    # air (small-007's torso scans: the muscle's dark level was then the air's).
+    objs = ndimage.find_objects(lab)
     edge_hit = np.zeros(n + 1, bool)
     for face in (lab[0], lab[-1], lab[:, 0], lab[:, -1], lab[:, :, 0], lab[:, :, -1]):
         edge_hit[np.unique(face)] = True
@@ -128,10 +129,10 @@ def _split_dark(a, t_dark, lv, *, vox_mm3, min_region_mm3, name):
     for k in big:
         if objs[k - 1] is None:
             continue
-        sl = tuple(slice(max(s.start - 3, 0), s.stop + 3) for s in objs[k - 1])
-        comp = sub_lab[sl] == k
-        shell = ndimage.binary_dilation(comp, iterations=3) & ~ndimage.binary_dilation(comp)
-        ring = float(np.mean(sub_a[sl][shell])) if shell.any() else 1.0
+        sl = tuple(slice(max(s.start - 2, 0), s.stop + 2) for s in objs[k - 1])
+        comp = lab[sl] == k
+        shell = ndimage.binary_dilation(comp, iterations=2) & ~ndimage.binary_dilation(comp)
+        ring = float(np.median(a[sl][shell])) if shell.any() else 1.0
         target = air if ring > 0.5 * (lv["muscle"] + lv["skin"]) else thorax
         target |= lab == k
         rings[k] = ring
