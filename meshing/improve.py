@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshing.quality import element_quality
+from meshing.quality import volume_skewness
 from meshing.sets import OUTWARD_FACES
 
 
 def _skew(nodes, tets):
-    return element_quality(nodes, tets)["skewness"]
+    return volume_skewness(nodes, tets)[1]
 
 
 def _node_tets(tets: np.ndarray, n_nodes: int):
@@ -33,9 +33,9 @@ def _try(x, v, local, cands, before):
     old = x[v].copy()
     for c in cands:
         x[v] = c
-        q = element_quality(x, local)
-        if (q["volume"] > 0).all() and q["skewness"].max() < best - 1e-6:
-            best, best_pos = q["skewness"].max(), c.copy()
+        vol, skew = volume_skewness(x, local)
+        if (vol > 0).all() and skew.max() < best - 1e-6:
+            best, best_pos = skew.max(), c.copy()
     x[v] = old if best_pos is None else best_pos
     return best_pos
 
@@ -241,9 +241,8 @@ def collapse_short_edges(
                 # No changed tet (every tet at `gone` holds the edge, e.g. a cap node of the
                 # flat tet alone): the collapse just removes them. The max over nothing
                 # raised here, the error CI's pipeline test met on one fTetWild mesh.
-                q = element_quality(nodes, changed)
-                if len(changed) and not ((q["volume"] > 0).all()
-                                         and q["skewness"].max() < worst - 1e-6):
+                vol, skew = volume_skewness(nodes, changed)
+                if len(changed) and not ((vol > 0).all() and skew.max() < worst - 1e-6):
                     continue
                 if _defects(new[~both]) <= defects:
                     return ~both, new[~both]

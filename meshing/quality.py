@@ -38,6 +38,32 @@ def _triangle_aspect(p: np.ndarray) -> np.ndarray:
     return worst / np.sqrt(3.0)
 
 
+def _volume_skewness(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(M, 4, 3) tet vertices -> signed volume, skewness and circumradius, each (M,)."""
+    a, b, c = (x[:, k] - x[:, 0] for k in (1, 2, 3))
+    bc = np.cross(b, c)
+    det = np.einsum("ij,ij->i", a, bc)
+    vol = det / 6.0
+    num = (
+        np.einsum("ij,ij->i", a, a)[:, None] * bc
+        + np.einsum("ij,ij->i", b, b)[:, None] * np.cross(c, a)
+        + np.einsum("ij,ij->i", c, c)[:, None] * np.cross(a, b)
+    )
+    circ_r = np.linalg.norm(num, axis=1) / np.maximum(np.abs(2.0 * det), 1e-300)
+    edge_eq = 4.0 * circ_r / np.sqrt(6.0)
+    vol_eq = edge_eq**3 / (6.0 * np.sqrt(2.0))
+    skew = np.clip(1.0 - np.abs(vol) / np.maximum(vol_eq, 1e-300), 0.0, 1.0)
+    return vol, skew, circ_r
+
+
+def volume_skewness(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Signed volume (mm^3) and skewness of each tet, as :func:`element_quality` gives
+    them, without the other measures: the mesh improvement's local moves ask for these
+    alone, tens of thousands of times."""
+    vol, skew, _ = _volume_skewness(np.asarray(nodes, float)[np.asarray(tets)])
+    return vol, skew
+
+
 def element_quality(nodes: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray]:
     """Per-element quality measures.
 
@@ -52,19 +78,7 @@ def element_quality(nodes: np.ndarray, tets: np.ndarray) -> dict[str, np.ndarray
     ``radius_ratio``, ``min_dihedral_deg``, ``min_edge``, ``max_edge`` (mm)
     """
     x = np.asarray(nodes, float)[np.asarray(tets)]
-    a, b, c = (x[:, k] - x[:, 0] for k in (1, 2, 3))
-    det = np.einsum("ij,ij->i", a, np.cross(b, c))
-    vol = det / 6.0
-    num = (
-        np.einsum("ij,ij->i", a, a)[:, None] * np.cross(b, c)
-        + np.einsum("ij,ij->i", b, b)[:, None] * np.cross(c, a)
-        + np.einsum("ij,ij->i", c, c)[:, None] * np.cross(a, b)
-    )
-    circ_r = np.linalg.norm(num, axis=1) / np.maximum(np.abs(2.0 * det), 1e-300)
-    edge_eq = 4.0 * circ_r / np.sqrt(6.0)
-    vol_eq = edge_eq**3 / (6.0 * np.sqrt(2.0))
-    skew = np.clip(1.0 - np.abs(vol) / np.maximum(vol_eq, 1e-300), 0.0, 1.0)
-
+    vol, skew, circ_r = _volume_skewness(x)
     faces = x[:, OUTWARD_FACES]  # (M, 4, 3, 3)
     fn = np.cross(faces[:, :, 1] - faces[:, :, 0], faces[:, :, 2] - faces[:, :, 0])
     area = 0.5 * np.linalg.norm(fn, axis=2)

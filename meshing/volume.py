@@ -12,7 +12,7 @@ from mechanics.mesh import REGIONS, Mesh, face_components
 from meshing import _occupancy, _tetwild
 from meshing.improve import collapse_short_edges, relocate_boundary_nodes, relocate_free_nodes
 from meshing.labels import Grid, TissueMasks, repaired, tissue_masks
-from meshing.quality import element_quality
+from meshing.quality import volume_skewness
 from meshing.sets import named_sets, tet_faces
 from meshing.sizing import COARSE, sizing_field
 from meshing.surface import distance_to_mask_mm, tissue_surface
@@ -161,7 +161,7 @@ def _drop_boundary_slivers(nodes, tets, *, max_skew: float = 0.9, rounds: int = 
         on_bnd = np.zeros(len(nodes), bool)
         on_bnd[bf.ravel()] = True
         all_on = on_bnd[tets[sub]].all(1)
-        skew = element_quality(nodes, tets[sub])["skewness"]
+        skew = volume_skewness(nodes, tets[sub])[1]
         drop = (skew > max_skew) & ((n_bnd >= 2) | ((n_bnd == 1) & all_on))
         if not drop.any():
             break
@@ -184,12 +184,12 @@ def _improve(nodes, tets, region, vu, fu, vb, fb, *, epsilon: float, passes: int
     interface meets the skin are carved out (:func:`_carve_caps`)."""
     for _ in range(passes):
         nodes, tets, region = _improve_once(nodes, tets, region, vu, fu, vb, fb, epsilon)
-        skew = element_quality(nodes, tets)["skewness"]
+        skew = volume_skewness(nodes, tets)[1]
         if skew.max() <= 0.9:
             break
     else:
         nodes, tets, region = _carve_caps(nodes, tets, region, skew > 0.9)
-        skew = element_quality(nodes, tets)["skewness"]
+        skew = volume_skewness(nodes, tets)[1]
     if skew.max() > 0.9:
         log.warning("meshing: %d tets keep a skewness above 0.9 (worst %.3f)",
                     int((skew > 0.9).sum()), float(skew.max()))

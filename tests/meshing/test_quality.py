@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from meshing.quality import element_quality
+from meshing.quality import element_quality, volume_skewness
 
 REGULAR = np.array([[1, 1, 1], [-1, 1, -1], [1, -1, -1], [-1, -1, 1]], float)
 
@@ -57,3 +57,13 @@ def test_triangle_aspect_of_a_2_to_1_right_triangle():
 
     tri = np.array([[[0, 0, 0], [2, 0, 0], [0, 1, 0]]], float)
     assert _triangle_aspect(tri)[0] == pytest.approx(4.25 / np.sqrt(3), rel=1e-9)
+
+
+def test_volume_and_skewness_alone_on_known_tets():
+    # what the mesh improvement's local moves ask for, tens of thousands of times
+    tets = np.array([[0, 1, 2, 3], [1, 0, 2, 3]])
+    vol, skew = volume_skewness(REGULAR, tets)
+    assert vol == pytest.approx([8 / 3, -8 / 3]) and skew == pytest.approx([0.0, 0.0], abs=1e-12)
+    squashed = REGULAR * np.array([1.0, 1.0, 1e-3])  # all four nodes near the plane z = 0
+    vol, skew = volume_skewness(squashed, tets[:1])
+    assert vol[0] == pytest.approx(8e-3 / 3) and skew[0] > 0.99
