@@ -176,11 +176,26 @@ def _defects(tets: np.ndarray) -> int:
     st = np.sort(tets, axis=1)
     n = int((st[:, 1:] == st[:, :-1]).any(1).sum())
     faces = np.sort(tets[:, OUTWARD_FACES].reshape(-1, 3), axis=1)
-    uf, cnt = np.unique(faces, axis=0, return_counts=True)
+    uf, cnt = _unique_rows(faces)
     n += int((cnt > 2).sum())
     edges = np.sort(uf[cnt == 1][:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
-    _, ecnt = np.unique(edges, axis=0, return_counts=True)
+    _, ecnt = _unique_rows(edges)
     return n + int((ecnt != 2).sum())
+
+
+def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(rows, axis=0, return_counts=True)`` for rows of 2 or 3 node indices,
+    through one int64 key per row (a tenth of the time: the collapse loop asks for it on
+    every face of the mesh, 90 times on full-000's)."""
+    rows = np.asarray(rows, np.int64)
+    bits = 63 // rows.shape[1]
+    if rows.size == 0 or int(rows.max()) >= 1 << bits:
+        return np.unique(rows, axis=0, return_counts=True)
+    key = np.zeros(len(rows), np.int64)
+    for j in range(rows.shape[1]):
+        key = (key << bits) | rows[:, j]
+    _, first, cnt = np.unique(key, return_index=True, return_counts=True)
+    return rows[first], cnt
 
 
 def collapse_short_edges(

@@ -4,7 +4,12 @@ remove flat tets without moving the boundary off its surface."""
 import numpy as np
 import pytest
 
-from meshing.improve import _defects, collapse_short_edges, relocate_boundary_nodes
+from meshing.improve import (
+    _defects,
+    _unique_rows,
+    collapse_short_edges,
+    relocate_boundary_nodes,
+)
 from meshing.quality import element_quality
 from meshing.sets import tet_faces
 from meshing.sizing import grid_tets
@@ -98,3 +103,13 @@ def test_collapse_that_changes_no_other_tet_removes_the_flat_cap():
     tets = orient_tets(nodes, np.array([[0, 1, 2, 3], [4, 1, 2, 3]]))
     out, kept = collapse_short_edges(nodes, tets, [tet_faces(tets)[0], np.array([[1, 2, 3]])])
     assert kept.tolist() == [0] and np.array_equal(out, tets[:1])
+
+
+@pytest.mark.parametrize("width, high", [(2, 50), (3, 50), (3, 1 << 22)])
+def test_unique_rows_matches_numpys_unique_over_rows(width, high):
+    # one int64 key per row, or numpy's own where the indices do not fit (1 << 22 > 21 bits)
+    rows = np.random.default_rng(width).integers(0, high, size=(3000, width))
+    rows[::7] = rows[1::7]  # repeats
+    got, cnt = _unique_rows(rows)
+    want, wcnt = np.unique(rows, axis=0, return_counts=True)
+    assert np.array_equal(got, want) and np.array_equal(cnt, wcnt)
