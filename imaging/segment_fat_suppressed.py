@@ -76,8 +76,7 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
     muscle = levelset_refine(feature, muscle, lower=t_fat, upper=np.inf, **ls)
     muscle &= body & reach & ~marker_mask
     # a voxel between the muscle and the thorax interior is one of the two, never breast
-    thorax |= (ndimage.binary_dilation(thorax) & ndimage.binary_dilation(muscle) & body
-               & ~muscle & ~marker_mask)
+    thorax |= _between(muscle, thorax, marker_mask) & body
     if not muscle.any():
         raise SegmentationError(f"{STAGE}: {name}: no muscle / chest wall left after its "
                                 "active contour (fat-suppressed contrast)")
@@ -223,14 +222,20 @@ def _refine_air(pre, a, sp, air, air_level, *, t_air, marker_diameter_mm, ls, na
     return air, body, markers_mm, marker_mask
 
 
+def _between(muscle, other, marker_mask):
+    """The voxels that touch both the muscle and ``other`` (air, thorax interior) and are
+    neither the muscle nor a marker: the partial volume between the two."""
+    return (ndimage.binary_dilation(muscle) & ndimage.binary_dilation(other)
+            & ~muscle & ~marker_mask)
+
+
 def _muscle_air_edge(a, muscle, air, marker_mask, lv):
     """Where the muscle meets air (a slab's back, its front between the breasts), the
     voxels between the two (touching both) are muscle above the midpoint of the muscle's
     and the air's levels, else air. A half-muscle, half-air voxel is as dark as fat when fat
     is suppressed, so the muscle's contour (at the muscle-fat midpoint) leaves it to the
     breast, and the air's (below the fat) to the body. Returns (muscle, air)."""
-    edge = (ndimage.binary_dilation(muscle) & ndimage.binary_dilation(air)
-            & ~muscle & ~marker_mask)
+    edge = _between(muscle, air, marker_mask)
     if not edge.any():
         return muscle, air
     solid = edge & (a >= 0.5 * (lv["muscle"] + lv["air"]))
