@@ -342,6 +342,7 @@ def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypat
     would reach by scipy's own tolerances alone, in fewer evaluations."""
     _, _, evaluate = _noisy_residual(seed=3, noise_sd=2.0, curvature=1.0)
     monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    monkeypatch.setattr(fitmod, "_STOP_STEP", 0.0)  # this rule alone
     x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
     res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
                                work_dir=tmp_path / "a", x0=x0)
@@ -354,3 +355,23 @@ def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypat
     for name in PARAMS:
         assert abs(res["best"]["params"][name] - full["best"]["params"][name]) \
             < 0.5 * full["uncertainty"][name]
+
+
+def test_least_squares_stops_once_the_next_step_is_below_its_precision(monkeypatch, tmp_path):
+    """Noise-free residuals, curved in ln p: once the next Gauss-Newton step would move every
+    parameter by less than 1 % the fit stops (saying so) in fewer evaluations than scipy's own
+    tolerances take, its best point within 1 % of the optimum."""
+    _, _, evaluate = _noisy_residual(seed=4, noise_sd=0.0, curvature=1.0)
+    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    monkeypatch.setattr(fitmod, "_STOP_SD", 0.0)  # the uncertainty is 0 here: not that rule
+    x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
+    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
+                               work_dir=tmp_path / "a", x0=x0)
+    monkeypatch.setattr(fitmod, "_STOP_STEP", 0.0)
+    full = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
+                                work_dir=tmp_path / "b", x0=x0)
+    assert "less than 1 %" in res["termination"]
+    assert "less than 1 %" not in full["termination"]
+    assert res["n_simulations"] < full["n_simulations"]
+    for name, opt in (("materials.breast_left.E", E_OPT), ("effects.skin.E", S_OPT)):
+        assert abs(math.log(res["best"]["params"][name] / opt)) < 0.01
