@@ -1,6 +1,7 @@
 """The fit's evaluations of the objective: memoised, stored atomically one record per
 parameter vector (``<key>.json``), replayed on resume, and optionally warm-started from the
-nearest earlier evaluation's stress-free geometry (``<key>.X.npy``)."""
+nearest earlier evaluation's stress-free geometry (``<key>.X.npy``) and displacements
+(``<key>.u.npz``, one array per position solved)."""
 
 from __future__ import annotations
 
@@ -23,9 +24,10 @@ class Evaluator:
 
     With ``warm`` (a list, shared by the evaluators of one fit), each new evaluation starts
     its stress-free inverse from the stress-free geometry of the nearest earlier evaluation
-    (in log-parameter space), which is stored beside its record (``<key>.X.npy``) so that a
-    resumed fit starts each evaluation exactly where the uninterrupted one did. A warm start
-    that fails is retried from the reference geometry.
+    (in log-parameter space), and each forward solve from that evaluation's displacement of
+    the same position; both are stored beside its record (``<key>.X.npy``, ``<key>.u.npz``)
+    so that a resumed fit starts each evaluation exactly where the uninterrupted one did. A
+    warm start that fails is retried from the reference geometry.
     """
 
     def __init__(self, problem_dir: Path, settings: Mapping[str, Any], folder: Path,
@@ -59,7 +61,12 @@ class Evaluator:
             write_json(path, rec)
             self.n_new += 1
         elif self.warm is not None and (self.folder / f"{key}.X.npy").is_file():
-            self._remember(params, np.load(self.folder / f"{key}.X.npy"), key)
+            u_path = self.folder / f"{key}.u.npz"
+            u = {}
+            if u_path.is_file():
+                with np.load(u_path) as z:
+                    u = {p: z[p] for p in z.files}
+            self._remember(params, np.load(self.folder / f"{key}.X.npy"), u, key)
         self.seen[key] = rec
         self.history.append({"key": key, **rec})
         if self.progress:
@@ -77,8 +84,11 @@ class Evaluator:
         start = self._nearest(params)
         out = None
         if start is not None:
+            if start[2]:  # a record stored without displacements starts from X alone
+                kw["u_start"] = start[2]
             out = evaluate_params(params, self.problem_dir, self.settings, start=start[1],
                                   keep_X=True, **kw)
+            kw.pop("u_start", None)
             out["warm_start"] = start[0]
             if out.get("error"):
                 log.info("fit: the evaluation started from %s failed (%s); retrying from the "
@@ -86,24 +96,29 @@ class Evaluator:
                 out = None
         if out is None:
             out = evaluate_params(params, self.problem_dir, self.settings, keep_X=True, **kw)
-        X = out.pop("X", None)
+        X, u = out.pop("X", None), out.pop("u", None) or {}
         if X is not None and not out.get("error"):
-            np.save(self.folder / f"{key}.X.tmp.npy", X)  # then renamed: atomic
+            # each written under a temporary name, then renamed (atomic); X last, as the
+            # record that the evaluation has a start to give
+            if u:
+                np.savez(self.folder / f"{key}.u.tmp.npz", **u)
+                (self.folder / f"{key}.u.tmp.npz").replace(self.folder / f"{key}.u.npz")
+            np.save(self.folder / f"{key}.X.tmp.npy", X)
             (self.folder / f"{key}.X.tmp.npy").replace(self.folder / f"{key}.X.npy")
-            self._remember(params, X, key)
+            self._remember(params, X, u, key)
         return out
 
-    def _remember(self, params: dict, X: np.ndarray, key: str) -> None:
-        if not any(k == key for k, _, _ in self.warm):
-            self.warm.append((key, dict(params), X))
+    def _remember(self, params: dict, X: np.ndarray, u: dict, key: str) -> None:
+        if not any(k == key for k, *_ in self.warm):
+            self.warm.append((key, dict(params), X, u))
 
-    def _nearest(self, params: dict) -> tuple[str, np.ndarray] | None:
-        """(key, X) of the stored evaluation nearest to ``params`` in log space."""
+    def _nearest(self, params: dict) -> tuple[str, np.ndarray, dict] | None:
+        """(key, X, u) of the stored evaluation nearest to ``params`` in log space."""
         best, dist = None, math.inf
-        for key, p, X in self.warm:
+        for key, p, X, u in self.warm:
             if set(p) != set(params):
                 continue
             d = sum(math.log(params[n] / p[n]) ** 2 for n in params)
             if d < dist:
-                best, dist = (key, X), d
+                best, dist = (key, X, u), d
         return best
