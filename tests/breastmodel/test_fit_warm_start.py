@@ -114,3 +114,41 @@ def test_sensitivity_at_a_bound_reuses_the_optimum(monkeypatch, tmp_path):
     assert [c["e"] for c in calls] == [pytest.approx(3.6)]  # the low side only
     s = sens[NAME]
     assert s["objective"] == s["objective_high"] == 1.5 and s["high"] == 4.0
+
+
+def test_each_forward_solve_starts_from_the_nearest_evaluations_displacement(
+        monkeypatch, tmp_path):
+    """An evaluation that returns its displacements (``u``) gives them to the next one that
+    starts from it, position by position, and a resumed fit reads them back from disk."""
+    calls: list = []
+    plain = _objective(calls)
+
+    def evaluate(params, problem_dir, settings, residuals=False, start=None, keep_X=False,
+                 u_start=None):
+        out = plain(params, problem_dir, settings, residuals=residuals, start=start,
+                    keep_X=keep_X)
+        calls[-1]["u_start"] = None if u_start is None else {
+            p: float(v[0, 0]) for p, v in u_start.items()}
+        if keep_X:
+            out["u"] = {p: np.full((4, 3), 10 * params[NAME] + k)
+                        for k, p in enumerate(calls[-1]["positions"])}
+        return out
+
+    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    settings = {"calibrate": ["prone", "supine"]}
+    fitmod.least_squares(tmp_path, settings, PARAMS, budget=30, work_dir=tmp_path / "w",
+                         x0={NAME: 2.5})
+    assert calls[0]["u_start"] is None
+    for c in calls[1:]:
+        assert c["u_start"] == pytest.approx({"prone": 10 * c["start"],
+                                              "supine": 10 * c["start"] + 1})
+    folder = tmp_path / "w" / "least_squares"
+    for c in calls[3:]:
+        key = point_key({NAME: float(f"{c['e']:.6g}")})
+        for suffix in (".json", ".X.npy", ".u.npz"):
+            (folder / f"{key}{suffix}").unlink()
+    first = {c["e"]: c["u_start"] for c in calls}
+    calls.clear()
+    fitmod.least_squares(tmp_path, settings, PARAMS, budget=30, work_dir=tmp_path / "w",
+                         x0={NAME: 2.5})
+    assert calls and all(first[c["e"]] == c["u_start"] for c in calls)

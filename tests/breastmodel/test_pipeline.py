@@ -479,3 +479,45 @@ def test_report_renders_in_chromium(first_run, tmp_path):
                "green": (g > r + 80) & (g > b + 80), "magenta": (r > g + 60) & (b > g + 60)}
     for name, mask in colours.items():
         assert mask.sum() > 1000, name
+
+
+def test_an_evaluation_reuses_the_inverse_and_a_warm_start_changes_nothing(first_run,
+                                                                           monkeypatch):
+    """The fit's objective on the run's problem: the reference position's prediction is the
+    converged inverse's last solve (no forward solve of its own), it scores as a fresh
+    forward solve does, and an evaluation started from a nearby one's stress-free geometry
+    and displacements gives the cold evaluation's numbers in fewer forward solves."""
+    import tomllib
+
+    from breastmodel.pipeline import problem as problem_mod
+    from breastmodel.pipeline.config import set_params
+
+    out, cfg_path = first_run
+    cfg = resolve_config(tomllib.loads(cfg_path.read_text()))
+    prob_dir = next((out / "cache" / "problem").iterdir())
+    settings = {"model": cfg["model"], "solver": cfg["solver"],
+                "stress_free": {**cfg["stress_free"], "tol_mm": 0.01},
+                "calibrate": ["prone", "supine"], "evaluate": ["supine_tilted"]}
+    predicted = []
+    plain = problem_mod.predict_position
+
+    def counted(problem, model, X, position, solver, **kw):
+        predicted.append(position)
+        return plain(problem, model, X, position, solver, **kw)
+
+    monkeypatch.setattr(problem_mod, "predict_position", counted)
+    name = "materials.breast_left.E|materials.breast_right.E"
+    near = problem_mod.evaluate_params({name: 0.5}, prob_dir, settings, keep_X=True)
+    assert near["error"] is None and set(near["u"]) == set(POSITIONS)
+    assert predicted == ["prone", "supine_tilted"]  # supine: the inverse's last solve
+    cold = problem_mod.evaluate_params({name: 0.52}, prob_dir, settings, keep_X=True)
+    warm = problem_mod.evaluate_params({name: 0.52}, prob_dir, settings, keep_X=True,
+                                       start=near["X"], u_start=near["u"])
+    problem = problem_mod.load_problem(prob_dir)
+    fresh = plain(problem, set_params(settings["model"], {name: 0.52}), cold["X"], "supine",
+                  settings["solver"])
+    assert problem_mod.score_position(problem, fresh.x, "supine")["mhd_mm"] == pytest.approx(
+        cold["mhd_mm"]["supine"], abs=1e-3)
+    assert warm["forward_solves"] < cold["forward_solves"]
+    for pos in POSITIONS:
+        assert warm["mhd_mm"][pos] == pytest.approx(cold["mhd_mm"][pos], abs=1e-3)
