@@ -18,22 +18,45 @@ log = logging.getLogger("breastmodel.pipeline")
 
 def fit_stage(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, Any],
               out: Path, progress: bool):
-    """The fit (``fit.json``); its evaluations are kept under ``out/fit``."""
+    """The fit (``fit.json``); its evaluations are kept under ``out/fit``. Where the search
+    stored its best evaluation's solution, ``start.npz`` holds it (``X`` and ``u_<position>``
+    of every position solved): the stress-free and predict stages start from it."""
 
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
         from breastmodel.pipeline.fit import fit_parameters, fit_work_dir
+        from breastmodel.sweep import point_key
 
-        res = fit_parameters(problem_dir, settings, cfg["fit"],
-                             work_dir=fit_work_dir(out / "fit", problem_dir, settings),
+        work = fit_work_dir(out / "fit", problem_dir, settings)
+        res = fit_parameters(problem_dir, settings, cfg["fit"], work_dir=work,
                              progress=progress)
+        key = point_key(res["best"]["params"])
+        X, u = None, {}
+        for search in ("least_squares", "optimizer", "held_out"):
+            if (work / search / f"{key}.X.npy").is_file():
+                X = np.load(work / search / f"{key}.X.npy") if X is None else X
+                if (work / search / f"{key}.u.npz").is_file():
+                    with np.load(work / search / f"{key}.u.npz") as z:
+                        u.update({f"u_{p}": z[p] for p in z.files})
+        if X is not None:
+            np.savez(d / "start.npz", X=X, **u)
         write_json(d / "fit.json", res)
     return fn
 
 
+def fit_start(fit_dir: Path | None) -> dict | None:
+    """The fit's best solution (``{"X", "u": {position: displacement}}``, mm) from its stage
+    folder, or None (no fit, or a search that keeps no solutions: the grid)."""
+    if fit_dir is None or not (fit_dir / "start.npz").is_file():
+        return None
+    with np.load(fit_dir / "start.npz") as z:
+        return {"X": z["X"], "u": {k[2:]: z[k] for k in z.files if k.startswith("u_")}}
+
+
 def stress_free_stage(problem_dir: Path, cfg: Mapping[str, Any], model: Mapping[str, Any],
-                      progress: bool):
-    """The stress-free geometry of ``model`` (``X.npy``, ``stress_free.json``)."""
+                      progress: bool, start: dict | None = None):
+    """The stress-free geometry of ``model`` (``X.npy``, ``stress_free.json``); ``start``
+    (:func:`fit_start`): the inverse starts from the fit's solution of this model."""
 
     def show(row: dict) -> None:
         print(f"     iteration {row['iteration']:2d}: node mismatch mean "
@@ -46,8 +69,11 @@ def stress_free_stage(problem_dir: Path, cfg: Mapping[str, Any], model: Mapping[
 
         problem = load_problem(problem_dir)
         try:
-            X, info = stress_free_geometry(problem, model, cfg["stress_free"], cfg["solver"],
-                                           callback=show if progress else None)
+            X, info = stress_free_geometry(
+                problem, model, cfg["stress_free"], cfg["solver"],
+                callback=show if progress else None,
+                start=None if start is None else (start["X"],
+                                                  start["u"].get(problem.reference)))
         except SolverError as exc:
             raise StageError("stress-free", f"forward solve failed: {exc}") from None
         np.save(d / "X.npy", X)
@@ -56,10 +82,11 @@ def stress_free_stage(problem_dir: Path, cfg: Mapping[str, Any], model: Mapping[
 
 
 def predict_stage(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[str, Any],
-                  model: Mapping[str, Any]):
+                  model: Mapping[str, Any], start: dict | None = None):
     """Predict ``position`` from the stress-free geometry in ``sf_dir`` and score it
     (``predicted.npz``, ``metrics.json``); a solve that stops short is scored at its last
-    converged state."""
+    converged state. ``start`` (:func:`fit_start`): Newton starts from the fit's
+    displacement of this position where it has one."""
 
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
@@ -70,7 +97,8 @@ def predict_stage(problem_dir: Path, sf_dir: Path, position: str, cfg: Mapping[s
         X = np.load(sf_dir / "X.npy")
         error = verdict = None
         try:
-            state = predict_position(problem, model, X, position, cfg["solver"])
+            u0 = None if start is None else start["u"].get(position)
+            state = predict_position(problem, model, X, position, cfg["solver"], u0=u0)
         except SolverError as exc:
             if exc.state is None:
                 raise StageError("predict", f"position {position!r}: {exc}") from None

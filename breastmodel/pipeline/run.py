@@ -32,6 +32,7 @@ from breastmodel.errors import StageError
 from breastmodel.pipeline.model_stages import (
     check_landmarks,
     fit_stage,
+    fit_start,
     n_tets,
     predict_stage,
     stress_free_stage,
@@ -266,26 +267,29 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
     prob_dir, prob_key = prep.problem_dir, prep.problem_key
 
     model = cfg["model"]
-    fit_info = None
+    fit_info = start = None
+    starts_from = []  # the fit's key where its solution starts the stages below
     if cfg["fit"]["enabled"]:
         settings = fit_settings(cfg, positions, subject.reference)
         check_landmarks(prob_dir, settings)
-        fit_dir, _ = R.stage("fit", {"settings": settings, "fit": {
+        fit_dir, fit_key = R.stage("fit", {"settings": settings, "fit": {
             k: v for k, v in cfg["fit"].items() if k not in ("n_workers", "scheduler")}},
             [prob_key], fit_stage(prob_dir, cfg, settings, out, R.progress))
         fit_info = json.loads((fit_dir / "fit.json").read_text())
         model = set_params(model, fit_info["best"]["params"])
+        start = fit_start(fit_dir)
+        starts_from = [fit_key] if start is not None else []
 
     sf_cfg = {"model": model, "stress_free": cfg["stress_free"], "solver": cfg["solver"]}
-    sf_dir, sf_key = R.stage("stress_free", sf_cfg, [prob_key],
-                             stress_free_stage(prob_dir, cfg, model, R.progress),
+    sf_dir, sf_key = R.stage("stress_free", sf_cfg, [prob_key, *starts_from],
+                             stress_free_stage(prob_dir, cfg, model, R.progress, start),
                              label=f"stress-free ({cfg['stress_free']['method']})")
     pred_dirs = {}
     for pos in cfg["evaluate"]["positions"] or positions:
         pred_dirs[pos], _ = R.stage("predict", {"position": pos, "model": model,
                                                 "solver": cfg["solver"]},
-                                    [prob_key, sf_key], predict_stage(prob_dir, sf_dir, pos, cfg,
-                                                                 model),
+                                    [prob_key, sf_key, *starts_from],
+                                    predict_stage(prob_dir, sf_dir, pos, cfg, model, start),
                                     label=f"predict {pos}")
 
     refinement = None
