@@ -35,25 +35,13 @@ from typing import Any
 import numpy as np
 
 from breastmodel.pipeline.fit_evaluations import Evaluator as _Evaluator
-from breastmodel.pipeline.fit_statistics import identifiability, log_sd, lsq_uncertainty
+from breastmodel.pipeline.fit_jacobian import PENALTY_MM, Jacobian
+from breastmodel.pipeline.fit_statistics import identifiability, lsq_uncertainty
 
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["fit_parameters", "fit_work_dir", "grid_points", "least_squares",
            "lsq_uncertainty", "identifiability", "optimise", "sensitivity"]
-
-_PENALTY_MM = 1e3  # objective of a failed evaluation as the optimiser sees it
-_LSQ_STEP = 0.05  # log-parameter step of the least-squares Jacobian (5 %)
-#: least squares stops once an accepted step moved every parameter by less than this many of
-#: its own standard deviations (``lsq_uncertainty`` at the new point): further steps refine
-#: the estimate below what the data determine
-_STOP_SD = 0.5
-#: ... or by less than this in ln p (1 %) every one: the modulus is wanted to 10 %, and on the
-#: suite's full-000 (11 evaluations) the four after the step of 0.5 % changed the mean MHD by
-#: less than 0.1 % and the modulus by 0.4 % (an uncertainty from ~10k skin nodes taken as
-#: independent is far below 1 %, so the rule above rarely stops a large subject)
-_STOP_STEP = 0.01
-
 
 def fit_work_dir(root: str | Path, problem_dir: str | Path,
                  settings: Mapping[str, Any]) -> Path:
@@ -128,7 +116,7 @@ def optimise(problem_dir: Path, settings: Mapping[str, Any],
         if len(ev.history) >= budget:
             raise _BudgetSpent
         obj = ev(params_of(z))["objective"]
-        return obj if obj is not None and math.isfinite(obj) else _PENALTY_MM
+        return obj if obj is not None and math.isfinite(obj) else PENALTY_MM
 
     if x0:
         z0 = np.clip((np.log([x0[n] for n in names]) - lo) / np.maximum(hi - lo, 1e-300), 0, 1)
@@ -189,82 +177,23 @@ def _held_out(res: dict, problem_dir, settings: Mapping[str, Any], work_dir,
     return res
 
 
-class _Jacobian:
-    """The least-squares Jacobian by forward differences in w (an absolute log step: scipy's
-    relative steps would be rounded away by the 6 digits that key the stored evaluations),
-    and the stop once the steps fall below the fit's precision or the parameters'
-    uncertainty (``settled``, the callback trf calls after each iteration, with the Jacobian
-    at an accepted point just computed here; a rejected step leaves x where it was)."""
-
-    def __init__(self, fun, shift: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                 w0: np.ndarray):
-        self.fun, self.shift, self.lo, self.hi = fun, shift, lo, hi
-        self.x, self.J, self.stop, self.failed = np.asarray(w0, float), None, None, False
-
-    def __call__(self, w) -> np.ndarray:
-        f0 = self.fun(w)
-        cols, self.failed = [], False
-        for i in range(len(w)):
-            up = w[i] + self.shift[i] + _LSQ_STEP <= self.hi[i]
-            h = _LSQ_STEP if up else -_LSQ_STEP
-            wi = np.array(w, float)
-            wi[i] += h
-            fi = self.fun(wi)
-            self.failed |= bool(np.all(fi == _PENALTY_MM))
-            cols.append((fi - f0) / h)
-        self.J = np.column_stack(cols)
-        return self.J
-
-    def _ahead(self, x: np.ndarray, r: np.ndarray) -> np.ndarray | None:
-        """|ln p| moved by the next Gauss-Newton step from x (within the bounds); None where a
-        probe of the Jacobian failed (its column is the penalty's, not a slope)."""
-        if self.failed:
-            return None
-        z = x + self.shift
-        d = np.linalg.lstsq(self.J, -r, rcond=None)[0]
-        return np.abs(np.clip(z + d, self.lo, self.hi) - z)
-
-    def settled(self, intermediate_result) -> None:
-        x = np.asarray(intermediate_result.x, float)
-        step, self.x = np.abs(x - self.x), x
-        if not step.any():
-            return
-        r = np.asarray(intermediate_result.fun, float)
-        ahead = self._ahead(x, r)
-        if np.all(step < _STOP_STEP):
-            self.stop = (f"the last step moved every parameter by less than "
-                         f"{100 * _STOP_STEP:g} % (at most {100 * step.max():.2f} %)")
-        elif ahead is not None and np.all(ahead < _STOP_STEP):
-            self.stop = (f"the next Gauss-Newton step would move every parameter by less than "
-                         f"{100 * _STOP_STEP:g} % (at most {100 * ahead.max():.2f} %)")
-        else:
-            sd = log_sd(self.J, r)
-            if sd is None or not np.all(step < _STOP_SD * sd):
-                return
-            self.stop = (f"the last step moved every parameter by less than {_STOP_SD} of its "
-                         f"standard deviation (at most {(step / sd).max():.2f})")
-        raise StopIteration
-
-
 def least_squares(problem_dir: Path, settings: Mapping[str, Any],
                   parameters: Mapping[str, Mapping[str, Any]], *, budget: int = 100,
                   work_dir: Path, progress: bool = False,
                   x0: Mapping[str, float] | None = None, warm: list | bool = True) -> dict:
     """Bounded trust-region least squares (scipy ``least_squares``, "trf") on the signed
     node-to-surface errors of the calibration positions (faded to 0 at the measured skin's
-    rim: :func:`breastmodel.pipeline.problem.skin_residual`), in log-parameter space.
+    rim: :func:`breastmodel.pipeline.scoring.skin_residual`), in log-parameter space.
 
     Uses the residual vector rather than its MHD summary, so each iteration gains from every
     skin node: a few parameters converge in a few tens of evaluations (forward-difference
     Jacobian with 5 % log steps, counted in ``budget``). The best evaluation by the objective
     (mean MHD) is returned, as for :func:`optimise` (often a Jacobian probe beside the
     least-squares optimum, where the uncertainty is computed: on the suite's small-000
-    1.054 against 1.003 kPa, truth 0.94), with scipy's ``termination`` message, or the
-    stop once an accepted step moved every parameter by less than ``_STOP_SD`` of its
-    standard deviation (on five suite subjects, small-000, -001, -002, -006, -009, pipeline:
-    14 -> 11 and 11 -> 9 evaluations on two of five, the same fitted moduli on all);
-    evaluations are stored in ``work_dir/least_squares`` and replayed on resume; ``warm`` as
-    for :func:`optimise`.
+    1.054 against 1.003 kPa, truth 0.94), with scipy's ``termination`` message or the
+    stopping rule that ended it (:class:`~breastmodel.pipeline.fit_jacobian.Jacobian`: a
+    step below the parameters' uncertainty, or below 1 %); evaluations are stored in
+    ``work_dir/least_squares`` and replayed on resume; ``warm`` as for :func:`optimise`.
     """
     from scipy.optimize import least_squares as scipy_lsq
 
@@ -290,7 +219,7 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
             if not size:  # the start failed: no residual's length to penalise with
                 raise _StartFailed(rec.get("error") or "no residual at a calibrated position")
             # a failed solve: a large residual pushes the trust region back
-            return np.full(size[0], _PENALTY_MM)
+            return np.full(size[0], PENALTY_MM)
         r = np.concatenate([np.asarray(res[p], float) for p in calibrate])
         if not size:
             size.append(len(r))
@@ -298,7 +227,7 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
 
     z0 = (np.log([x0[n] for n in names]) if x0 else 0.5 * (lo + hi)).astype(float)
     w0 = np.clip(z0, lo + 1e-9, hi - 1e-9) - shift
-    jac = _Jacobian(fun, shift, lo, hi, w0)
+    jac = Jacobian(fun, shift, lo, hi, w0)
     stop, uncertainty = "budget spent", {}
     try:
         sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo - shift, hi - shift), method="trf",

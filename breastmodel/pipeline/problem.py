@@ -25,20 +25,21 @@ import numpy as np
 
 from breastmodel.pipeline.config import materials_by_code, set_params
 from breastmodel.pipeline.scoring import (
+    RIM_FADE_MM,
     landmark_barycentric,
     predicted_landmarks,
     score_position,
     skin_node_regions,
+    skin_residual,
 )
 
 log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = [
-    "Problem", "evaluate_params", "forget_problem", "landmark_barycentric", "load_problem",
-    "mesh_of", "model_mesh", "move_measured_skin", "position_model", "skin_nodes",
-    "predict_position", "score_position", "skin_node_regions", "skin_residual",
-    "solver_options",
-    "stress_free_geometry",
+    "RIM_FADE_MM", "Problem", "evaluate_params", "forget_problem", "landmark_barycentric",
+    "load_problem", "mesh_of", "model_mesh", "move_measured_skin", "position_model",
+    "skin_nodes", "predict_position", "score_position", "skin_node_regions", "skin_residual",
+    "solver_options", "stress_free_geometry",
 ]
 
 
@@ -353,30 +354,6 @@ def sweep_point(point: Mapping[str, float], *, problem_dir: str,
                 settings: Mapping[str, Any]) -> dict:
     """:func:`evaluate_params` in the form ``run_sweep`` calls (use functools.partial)."""
     return evaluate_params(point, problem_dir, settings)
-
-
-#: A skin node whose closest point on the measured skin lies on its rim (the field-of-view
-#: cut, the edge left where the skin meets the muscle) has no defined side: the sign of its
-#: distance follows whichever rim triangle is nearest and flips with sub-millimetre motions.
-#: On the suite's full-size subject full-000, 11 of 1313 prone nodes did so between the fit's
-#: first two evaluations (1.0 and 1.051 kPa), each residual jumping by 3-18 mm while the
-#: others changed by at most 1.3 mm; they made three quarters of the Jacobian's squared norm,
-#: so the least squares stepped a third as far as it would without them (1.0 -> 1.127 kPa
-#: against 1.476) and needed 17 evaluations. The fit's residual is therefore weighted by the
-#: closest point's distance to the rim over this length (0 on the rim, 1 from it on):
-#: continuous, and the rim's nodes, which the measurement does not place, count for nothing.
-#: The reported MHD (unsigned) is unchanged.
-RIM_FADE_MM = 5.0
-
-
-def skin_residual(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """The fit's skin residual of each point (mm): its signed distance to the measured skin
-    (``vertices``, ``triangles``) times its closest point's distance to the skin's rim over
-    :data:`RIM_FADE_MM`, at most 1."""
-    from breastmodel.evaluation.distances import TriangleSurface, boundary_distance
-
-    d, closest = TriangleSurface(vertices, triangles).distance(points, signed=True)
-    return d * np.clip(boundary_distance(vertices, triangles, closest) / RIM_FADE_MM, 0.0, 1.0)
 
 
 def _residual(problem: Problem, x: np.ndarray, position: str, sees: Sequence[str],

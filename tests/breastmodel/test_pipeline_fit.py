@@ -14,6 +14,7 @@ import pytest
 
 from breastmodel.config import ConfigError
 from breastmodel.pipeline import fit as fitmod
+from breastmodel.pipeline import fit_jacobian
 from breastmodel.pipeline import problem as problem_mod
 from breastmodel.pipeline.config import get_param, resolve_config, set_params
 
@@ -342,11 +343,11 @@ def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypat
     would reach by scipy's own tolerances alone, in fewer evaluations."""
     _, _, evaluate = _noisy_residual(seed=3, noise_sd=2.0, curvature=1.0)
     monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
-    monkeypatch.setattr(fitmod, "_STOP_STEP", 0.0)  # this rule alone
+    monkeypatch.setattr(fit_jacobian, "STOP_STEP", 0.0)  # this rule alone
     x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
     res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
                                work_dir=tmp_path / "a", x0=x0)
-    monkeypatch.setattr(fitmod, "_STOP_SD", 0.0)
+    monkeypatch.setattr(fit_jacobian, "STOP_SD", 0.0)
     full = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
                                 work_dir=tmp_path / "b", x0=x0)
     assert "standard deviation" in res["termination"]
@@ -363,11 +364,11 @@ def test_least_squares_stops_once_the_next_step_is_below_its_precision(monkeypat
     tolerances take, its best point within 1 % of the optimum."""
     _, _, evaluate = _noisy_residual(seed=4, noise_sd=0.0, curvature=1.0)
     monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
-    monkeypatch.setattr(fitmod, "_STOP_SD", 0.0)  # the uncertainty is 0 here: not that rule
+    monkeypatch.setattr(fit_jacobian, "STOP_SD", 0.0)  # the uncertainty is 0 here: not that rule
     x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
     res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
                                work_dir=tmp_path / "a", x0=x0)
-    monkeypatch.setattr(fitmod, "_STOP_STEP", 0.0)
+    monkeypatch.setattr(fit_jacobian, "STOP_STEP", 0.0)
     full = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
                                 work_dir=tmp_path / "b", x0=x0)
     assert "less than 1 %" in res["termination"]
