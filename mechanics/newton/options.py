@@ -15,7 +15,9 @@ class SolverOptions:
 
     tol : relative residual norm at convergence
     max_newton : Newton iterations per load step before the step is cut back
-    initial_steps : the first load increment is 1 / initial_steps
+    initial_steps : the first load increment is 1 / initial_steps; a solve given an initial
+        guess (``u0``, a nearby problem's solution at full load) first tries the whole load
+        from it in one step, and follows the path of these increments only where that fails
     min_step : smallest load increment before giving up
     max_cutbacks : total cut-backs allowed in one solve
     grow_below : grow the increment (x2) after a step that took at most this many iterations
