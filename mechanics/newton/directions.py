@@ -77,10 +77,12 @@ class _Directions:
                 and budget >= 3 and not fresh:
             its0 = self.krylov_its
             y = self._krylov(matvec, b, rel, min(budget, self.opt.reuse_max_iterations))
+            self.reused = y is not None
             self.krylov_used += y is not None
             self.krylov_failed += y is None
             self.trace.append(f"{'K' if y is not None else 'k'}{self.krylov_its - its0}")
         if y is None:
+            self.reused = False
             t0, c0 = time.perf_counter(), time.process_time()
             self.lin.factorize(A, symmetric=self.symmetric)
             self.factored = True

@@ -52,6 +52,7 @@ class _Newton(_Directions):
         self.factored = False
         self.n_factor = 0
         self.krylov_used = 0
+        self.reused = False  # the last direction came from a reused factorisation
         self.krylov_its = 0
         self.krylov_failed = 0  # reusing solves that did not converge (a factorisation followed)
         self.trace: list[str] = []  # linear solves of the current step: F, K<its>, k<its> (failed)
