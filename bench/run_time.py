@@ -106,6 +106,33 @@ script, the same settings; the others are this bench. The first two kept the til
 position's refined registration, which fails the fiducial check, with ``require_fiducials =
 false``; the third is the default, in which the fiducial-only transform replaces it: chest-wall
 TRE 1.17 -> 0.19 mm, and the held-out tilted MHD falls 1.18 -> 0.92 mm.)
+
+``--suite 0`` again (2026-11-27, quiet machine, 2 threads; the mesh's repair made faster in
+between, ``bench/results/run_time_suite_2026-11-27b.json`` before and ``-27c.json`` after the
+fit's changes below). The fitted modulus (1.730 kPa) and the MHDs (prone 1.050, supine 0.403,
+tilted 1.779 mm) are the same in both:
+
+stage                          before       after
+segment (3 positions)           48.4         49.4
+register                        37.6         35.5
+measured skins                  27.8         29.6
+mesh (the wait for it)          37.0         39.4
+fit                            131.6 (12)    41.2 (9 simulations)
+the rest                        14.9          1.1
+whole run                      303.1        203.1
+
+What each change bought, each measured on the same stored problem (a copy of the run, its
+fit started afresh; fit stage / the rest): the least squares stop once the next
+Gauss-Newton step is below 1 % (``breastmodel.pipeline.fit_jacobian``: 12 -> 9 simulations,
+the three left out moving the modulus by 0.4 %); an evaluation takes its reference position's
+prediction from the converged inverse's last solve (one forward solve fewer each) and starts
+each forward solve from the nearest earlier evaluation's displacement (fit 132 -> 80 s); the
+stress-free and predict stages start from the fit's best solution (the rest 16 -> 7 s); a
+solve given a guess takes the whole load from it in one step (``mechanics.newton.stepping``:
+the inverse's warm solves 10-18 -> 1-4 Newton iterations; fit 80 -> 48 s, the rest 7 -> 1.4
+s); a reused factorisation is kept only while Newton halves the residual with it (the first,
+cold evaluation's supine solve 50 -> 9 iterations; fit 48 -> 46 s). The first evaluation, at
+the start of 1 kPa from the reference geometry, is still 19 s of the fit's 41.
 """
 
 from __future__ import annotations
