@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from meshing.quality import volume_skewness
+from meshing.quality import _volume_skewness, volume_skewness
 from meshing.sets import OUTWARD_FACES
 
 
@@ -28,15 +28,22 @@ def _node_tets(tets: np.ndarray, n_nodes: int):
 
 def _try(x, v, local, cands, before):
     """Best candidate position of node v (or None): lowest worst skewness of the tets
-    ``local`` around it, all of them positive."""
+    ``local`` around it, all of them positive; the first of equals (within 1e-6) in the
+    order given. Every candidate is measured in one call (the tets' corners stacked)."""
+    cands = np.asarray(cands, float).reshape(-1, 3)
+    if len(cands) == 0:
+        return None
+    corners = np.broadcast_to(x[local], (len(cands), *local.shape, 3)).copy()
+    corners[:, local == v] = cands[:, None, :]
+    vol, skew, _ = _volume_skewness(corners.reshape(-1, 4, 3))
+    ok = (vol.reshape(len(cands), -1) > 0).all(1)
+    worst = skew.reshape(len(cands), -1).max(1)
     best, best_pos = before, None
-    old = x[v].copy()
-    for c in cands:
-        x[v] = c
-        vol, skew = volume_skewness(x, local)
-        if (vol > 0).all() and skew.max() < best - 1e-6:
-            best, best_pos = skew.max(), c.copy()
-    x[v] = old if best_pos is None else best_pos
+    for c, good, w in zip(cands, ok, worst):
+        if good and w < best - 1e-6:
+            best, best_pos = w, c.copy()
+    if best_pos is not None:
+        x[v] = best_pos
     return best_pos
 
 
