@@ -72,18 +72,22 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     solver = dict(settings["solver"])
     if math.isfinite(budget.max_seconds):  # a solve stops inside too, not only between solves
         solver["deadline"] = budget.deadline
+    solved: dict = {}  # the reference position, solved by the inverse's last iteration
     with budget.solving("the stress-free inverse"):
         X, _ = stress_free_geometry(
-            problem, model, settings["stress_free"], solver, start=sf_start,
+            problem, model, settings["stress_free"], solver, start=sf_start, solved=solved,
             before_solve=lambda: budget.charge("a stress-free iteration"))
     out: dict[str, Any] = {"residual": {}, "mhd_mm": {}}
     us = {}
     for pos in settings["positions"]:
-        budget.charge(f"position {pos}")
-        u0 = u_start.get(pos)
-        with budget.solving(f"position {pos}"):
-            x = predict_position(problem, model, X, pos, solver,
-                                 u0=None if u0 is None else np.asarray(u0)).x
+        if pos in solved:
+            x = solved[pos].x
+        else:
+            budget.charge(f"position {pos}")
+            u0 = u_start.get(pos)
+            with budget.solving(f"position {pos}"):
+                x = predict_position(problem, model, X, pos, solver,
+                                     u0=None if u0 is None else np.asarray(u0)).x
         us[pos] = x - X
         d, _ = point_to_surface(x[skin_nodes(problem, len(x))], *problem.skins[pos],
                                 signed=True)

@@ -190,7 +190,7 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
         # direction that did not halve the residual, the next one is factorised anew
         # (full-000's supine solve from rest at 1 kPa: an inexact step at a relative
         # residual near 1 stalled there, 50 Newton iterations in 8 steps, 3 cut back; with
-        # this rule 7 in 2 steps, the time of the solve 9.9 -> 3.4 s)
+        # this rule 9 in 2 steps, the time of the solve 9.9 -> 3.2 s)
         slow = it > 0 and nw.reused and rel > _REUSE_PROGRESS * entry["residuals"][-2]
         du, failure = _direction(nw, A, R, u, rel, entry, first_from_rest=it == 0 and from_rest,
                                  fresh=slow)

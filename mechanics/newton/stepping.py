@@ -191,7 +191,8 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
     # A guess is a nearby problem's solution at full load: the first step takes the whole
     # load from it, and a cut-back falls back on the path's increments (measured on the
     # suite's full-000, 46k tets: the stress-free inverse's warm solves 10-18 -> 1-4 Newton
-    # iterations each at initial_steps = 2, its cold fit evaluation 26 -> 17 s).
+    # iterations each at initial_steps = 2; the inverse of the fit's first, cold evaluation
+    # 26 -> 17 s).
     first = 1.0 if guess is not None else 1.0 / max(1, int(options.initial_steps))
     path = _Path(0.0, np.zeros(n3), first)
     stops = _path_stops(model)
