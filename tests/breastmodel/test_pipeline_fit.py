@@ -337,19 +337,26 @@ def test_skin_residual_is_continuous_where_the_closest_point_is_on_the_measured_
     assert np.allclose(skin_residual(inside, V, F), [3.0, -3.0, 1.5], atol=0.05 * 3.0)
 
 
+def _with_and_without(monkeypatch, tmp_path, evaluate, rule: str, other: str):
+    """The least squares on ``evaluate`` with the stopping rule ``rule`` alone (``other``
+    off), then with neither: (with, without)."""
+    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
+    monkeypatch.setattr(fit_jacobian, other, 0.0)
+    x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
+    out = []
+    for folder in ("a", "b"):
+        out.append(fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
+                                        work_dir=tmp_path / folder, x0=x0))
+        monkeypatch.setattr(fit_jacobian, rule, 0.0)
+    return out
+
+
 def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypatch, tmp_path):
     """Noisy residuals, nearly linear in ln p: once a step moves every parameter by less than
     half its standard deviation the fit stops (saying so), within that of the optimum it
     would reach by scipy's own tolerances alone, in fewer evaluations."""
     _, _, evaluate = _noisy_residual(seed=3, noise_sd=2.0, curvature=1.0)
-    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
-    monkeypatch.setattr(fit_jacobian, "STOP_STEP", 0.0)  # this rule alone
-    x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
-    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
-                               work_dir=tmp_path / "a", x0=x0)
-    monkeypatch.setattr(fit_jacobian, "STOP_SD", 0.0)
-    full = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
-                                work_dir=tmp_path / "b", x0=x0)
+    res, full = _with_and_without(monkeypatch, tmp_path, evaluate, "STOP_SD", "STOP_STEP")
     assert "standard deviation" in res["termination"]
     assert "standard deviation" not in full["termination"]
     assert res["n_simulations"] < full["n_simulations"]
@@ -361,16 +368,10 @@ def test_least_squares_stops_once_its_steps_fall_below_the_uncertainty(monkeypat
 def test_least_squares_stops_once_the_next_step_is_below_its_precision(monkeypatch, tmp_path):
     """Noise-free residuals, curved in ln p: once the next Gauss-Newton step would move every
     parameter by less than 1 % the fit stops (saying so) in fewer evaluations than scipy's own
-    tolerances take, its best point within 1 % of the optimum."""
+    tolerances take, its best point within 1 % of the optimum (the uncertainty is 0 here, so
+    the other rule is off)."""
     _, _, evaluate = _noisy_residual(seed=4, noise_sd=0.0, curvature=1.0)
-    monkeypatch.setattr(problem_mod, "evaluate_params", evaluate)
-    monkeypatch.setattr(fit_jacobian, "STOP_SD", 0.0)  # the uncertainty is 0 here: not that rule
-    x0 = {"materials.breast_left.E": 3.5, "effects.skin.E": 1.2}
-    res = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
-                               work_dir=tmp_path / "a", x0=x0)
-    monkeypatch.setattr(fit_jacobian, "STOP_STEP", 0.0)
-    full = fitmod.least_squares(tmp_path, {"calibrate": ["prone"]}, PARAMS, budget=60,
-                                work_dir=tmp_path / "b", x0=x0)
+    res, full = _with_and_without(monkeypatch, tmp_path, evaluate, "STOP_STEP", "STOP_SD")
     assert "less than 1 %" in res["termination"]
     assert "less than 1 %" not in full["termination"]
     assert res["n_simulations"] < full["n_simulations"]
