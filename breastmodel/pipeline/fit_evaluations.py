@@ -16,7 +16,7 @@ import numpy as np
 
 log = logging.getLogger("breastmodel.pipeline")
 
-__all__ = ["Evaluator"]
+__all__ = ["Evaluator", "stored_solution"]
 
 
 class Evaluator:
@@ -60,13 +60,8 @@ class Evaluator:
             rec = {"params": params, **self._evaluate(params, key)}
             write_json(path, rec)
             self.n_new += 1
-        elif self.warm is not None and (self.folder / f"{key}.X.npy").is_file():
-            u_path = self.folder / f"{key}.u.npz"
-            u = {}
-            if u_path.is_file():
-                with np.load(u_path) as z:
-                    u = {p: z[p] for p in z.files}
-            self._remember(params, np.load(self.folder / f"{key}.X.npy"), u, key)
+        elif self.warm is not None and (stored := stored_solution(self.folder, key)):
+            self._remember(params, *stored, key)
         self.seen[key] = rec
         self.history.append({"key": key, **rec})
         if self.progress:
@@ -84,11 +79,10 @@ class Evaluator:
         start = self._nearest(params)
         out = None
         if start is not None:
-            if start[2]:  # a record stored without displacements starts from X alone
-                kw["u_start"] = start[2]
+            # a record stored without displacements starts from X alone
+            u_kw = {"u_start": start[2]} if start[2] else {}
             out = evaluate_params(params, self.problem_dir, self.settings, start=start[1],
-                                  keep_X=True, **kw)
-            kw.pop("u_start", None)
+                                  keep_X=True, **kw, **u_kw)
             out["warm_start"] = start[0]
             if out.get("error"):
                 log.info("fit: the evaluation started from %s failed (%s); retrying from the "
@@ -122,3 +116,15 @@ class Evaluator:
             if d < dist:
                 best, dist = (key, X, u), d
         return best
+
+
+def stored_solution(folder: Path, key: str) -> tuple[np.ndarray, dict] | None:
+    """(X, u {position: displacement}) an evaluation stored beside its record in ``folder``
+    (u empty for a record stored without displacements), or None."""
+    if not (folder / f"{key}.X.npy").is_file():
+        return None
+    u = {}
+    if (folder / f"{key}.u.npz").is_file():
+        with np.load(folder / f"{key}.u.npz") as z:
+            u = {p: z[p] for p in z.files}
+    return np.load(folder / f"{key}.X.npy"), u

@@ -25,6 +25,7 @@ def fit_stage(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, 
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
         from breastmodel.pipeline.fit import fit_parameters, fit_work_dir
+        from breastmodel.pipeline.fit_evaluations import stored_solution
         from breastmodel.sweep import point_key
 
         work = fit_work_dir(out / "fit", problem_dir, settings)
@@ -32,14 +33,13 @@ def fit_stage(problem_dir: Path, cfg: Mapping[str, Any], settings: Mapping[str, 
                              progress=progress)
         key = point_key(res["best"]["params"])
         X, u = None, {}
-        for search in ("least_squares", "optimizer", "held_out"):
-            if (work / search / f"{key}.X.npy").is_file():
-                X = np.load(work / search / f"{key}.X.npy") if X is None else X
-                if (work / search / f"{key}.u.npz").is_file():
-                    with np.load(work / search / f"{key}.u.npz") as z:
-                        u.update({f"u_{p}": z[p] for p in z.files})
+        for search in ("least_squares", "optimizer", "held_out"):  # the held-out positions' u
+            stored = stored_solution(work / search, key)
+            if stored is not None:
+                X = stored[0] if X is None else X
+                u.update(stored[1])
         if X is not None:
-            np.savez(d / "start.npz", X=X, **u)
+            np.savez(d / "start.npz", X=X, **{f"u_{p}": v for p, v in u.items()})
         write_json(d / "fit.json", res)
     return fn
 
