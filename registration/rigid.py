@@ -125,9 +125,8 @@ def register_rigid(
         iterations per level, fraction of mask voxels sampled, first step (mm), the sampling
         seed and the metric's threads; see :func:`refine_rigid`.
     fine_levels : int
-        How many of the finest levels the masked chest-wall refinement runs (its start is
-        close; a coarse level's blurred optimum pulls along the directions a wall leaves loose),
-        of those whose voxels are at most :data:`MAX_VOXEL_MM`.
+        How many of the finest levels of at most :data:`MAX_VOXEL_MM` the masked chest-wall
+        refinement runs (its start is close; a coarse level's optimum pulls along loose ones).
     fiducial_fallback : bool
         When the refined transform fails a check by moving every marker alike, return the
         fiducial-only solution (status ``"fiducials"``); see :func:`_checked`.
@@ -148,8 +147,7 @@ def register_rigid(
     for n in notes:
         log.warning("%s: %s", STAGE, n)
     k = max(1, int(fine_levels))  # the start is close (fiducials, or moments + whole body)
-    levels = dict(zip(("shrink", "smooth_mm"), _fine(fixed, shrink[-k:], smooth_mm[-k:])),
-                  **opts)
+    levels = dict(_fine(fixed, shrink[-k:], smooth_mm[-k:]), **opts)
     tfm, metric = refine_rigid(fixed, moving, init, fixed_mask=fixed_mask, **levels)
     if fixed_mask is not None:
         pinned = [] if fid is None or marker_mask_mm <= 0 else _rigid_markers(
@@ -174,11 +172,13 @@ def register_rigid(
 MAX_VOXEL_MM = 3.0
 
 
-def _fine(fixed, shrink, smooth_mm) -> tuple[tuple, tuple]:
-    """(shrink, smooth_mm) of the levels whose voxels stay within :data:`MAX_VOXEL_MM`."""
+def _fine(fixed, shrink, smooth_mm) -> dict:
+    """``shrink`` and ``smooth_mm`` of the levels whose voxels stay within
+    :data:`MAX_VOXEL_MM`."""
     voxel = float(np.prod(fixed.GetSpacing())) ** (1.0 / 3.0)
     keep = [i for i, s in enumerate(shrink) if s * voxel <= MAX_VOXEL_MM] or [len(shrink) - 1]
-    return tuple(shrink[i] for i in keep), tuple(smooth_mm[i] for i in keep)
+    return {"shrink": tuple(shrink[i] for i in keep),
+            "smooth_mm": tuple(smooth_mm[i] for i in keep)}
 
 
 def _checked(fixed, moving, tfm, fid, used, fixed_points, moving_points, notes, *, chest,

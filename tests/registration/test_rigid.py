@@ -205,8 +205,8 @@ def test_the_chest_wall_levels_keep_voxels_of_at_most_3_mm():
         return img
 
     assert MAX_VOXEL_MM == 3.0
-    assert _fine(image((1.0, 1.0, 1.0)), (2, 1), (1.0, 0.0)) == ((2, 1), (1.0, 0.0))
-    assert _fine(image((1.5, 1.5, 1.5)), (2, 1), (1.0, 0.0)) == ((2, 1), (1.0, 0.0))
-    assert _fine(image((1.0, 1.0, 2.0)), (2, 1), (1.0, 0.0)) == ((2, 1), (1.0, 0.0))
-    assert _fine(image((2.0, 2.0, 2.0)), (2, 1), (1.0, 0.0)) == ((1,), (0.0,))
-    assert _fine(image((4.0, 4.0, 4.0)), (2, 1), (1.0, 0.0)) == ((1,), (0.0,))
+    both, fine = {"shrink": (2, 1), "smooth_mm": (1.0, 0.0)}, {"shrink": (1,), "smooth_mm": (0.0,)}
+    for spacing, want in (((1.0, 1.0, 1.0), both), ((1.5, 1.5, 1.5), both),
+                          ((1.0, 1.0, 2.0), both), ((2.0, 2.0, 2.0), fine),
+                          ((4.0, 4.0, 4.0), fine)):
+        assert _fine(image(spacing), (2, 1), (1.0, 0.0)) == want
