@@ -193,20 +193,12 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
     # suite's full-000, 46k tets: the stress-free inverse's warm solves 10-18 -> 1-4 Newton
     # iterations each at initial_steps = 2; the inverse of the fit's first, cold evaluation
     # 26 -> 17 s).
-    # Where that step fails, the guess is dropped and the path starts from rest as without
-    # one: in the fit's first evaluation on full-000, the stress-free inverse's second
-    # forward solve stalled on the full step from the first one's displacement (its free
-    # residual there 11 times the one at rest) and then took 16 iterations along the path
-    # of that guess, 9 from rest.
-    cold = 1.0 / max(1, int(options.initial_steps))
-    path = _Path(0.0, np.zeros(n3), 1.0 if guess is not None else cold)
+    first = 1.0 if guess is not None else 1.0 / max(1, int(options.initial_steps))
+    path = _Path(0.0, np.zeros(n3), first)
     stops = _path_stops(model)
     while path.lam < 1.0 - 1e-12:
         new_lam = _next_load(path, stops)
         ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, options.predictor)
-        if not ok and guess is not None and len(path.steps) == 1:
-            guess, path.dlam = None, cold
-            continue
         if not ok and options.predictor == "converged" and path.prev is not None:
             # the same step once more from the extrapolation before cutting back: the
             # converged state is the better start on the softest moduli, the extrapolation
