@@ -319,3 +319,25 @@ def test_markers_follow_a_deformation_the_fixed_point_cannot_invert():
     x = _deformed(X, u)
     assert np.max(np.abs(x - X - u(x))) < 1e-8
     assert np.allclose(x[0], (X + 1.5 * c) / 2.5, atol=1e-8)
+
+
+def test_markers_where_the_deformation_jumps_by_less_than_the_root_tolerance():
+    """u continuous only up to a 0.003 mm jump at the root (the closest-point extrapolation
+    outside a simulated mesh): no exact root exists; the marker lands within ROOT_TOL_MM of
+    one. A fold (a jump of millimetres) is still an error."""
+    from breastmodel.phantom.writer import ROOT_TOL_MM, _deformed
+
+    def jumping(jump):
+        def u(p):  # x - X - u(x) jumps from -jump/2 to +jump/2 in x0 at the root x0 = 1
+            p = np.asarray(p, float)
+            shift = np.where(p[:, :1] >= 1.0, -jump / 2, jump / 2)
+            return 0.2 * p + shift * np.array([1.0, 0.0, 0.0])
+        return u
+
+    X = np.array([0.8, 4.0, -7.0])  # the smooth root is x = X / 0.8
+    u = jumping(0.006)
+    x = _deformed(X, u)
+    assert np.max(np.abs(x - X - u(x))) < ROOT_TOL_MM
+    assert np.allclose(x[0], X / 0.8, atol=0.01)
+    with pytest.raises(RuntimeError, match="not invertible"):
+        _deformed(X, jumping(6.0))
