@@ -16,8 +16,8 @@ import numpy as np
 
 from breastmodel.phantom.truth_model import TruthModel
 
-__all__ = ["FEBIO_APPROXIMATED", "FEBIO_STEPS", "TRUTH_SOLVERS", "find_febio_for_truth",
-           "solve_position", "truth_solver_executable"]
+__all__ = ["FEBIO_APPROXIMATED", "FEBIO_MAX_REFS", "FEBIO_STEPS", "TRUTH_SOLVERS",
+           "find_febio_for_truth", "solve_position", "truth_solver_executable"]
 
 log = logging.getLogger("breastmodel.phantom")
 
@@ -27,6 +27,13 @@ TRUTH_SOLVERS = ("ours", "febio")
 #: two steps reach the same equilibrium as ten (to 1e-13 mm on a small subject) at a fifth of
 #: the time, and FEBio's time stepper halves a step that fails to converge.
 FEBIO_STEPS = 2
+#: Newton iterations FEBio may spend on one time step of a truth before it cuts the step
+#: (its own default and :data:`mechanics.febio.TOLERANCES`: 25). On Gent breast tissue
+#: FEBio's Newton converges linearly near full load (the displacement norm halves each
+#: iteration): a small subject's prone position (seed 3, Jm 1) needed 30 iterations in its
+#: second step and converged in 115 s with 60, where with 25 the retries crawled from load
+#: 0.94 to 0.98 in 10 minutes. Converging solves are unchanged (the limit is not reached).
+FEBIO_MAX_REFS = 60
 #: Effects for which a truth is written with FEBio approximations allowed: the wrinkling skin,
 #: written as shells that carry compression (without it, any approximation is refused before
 #: FEBio runs). What the file approximated is recorded with each truth, in its own words.
@@ -110,7 +117,7 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
         try:
             run = solve_with_febio(model, work_dir=wd, febio=febio_path, element="ut4",
                                    threads=1, cache_dir=febio_cache, steps=FEBIO_STEPS,
-                                   approximate=approximate)
+                                   approximate=approximate, max_refs=FEBIO_MAX_REFS)
         except Exception as exc:  # noqa: BLE001 - re-raised naming the position and model
             raise RuntimeError(f"phantom: FEBio truth of position {name!r} with truth model "
                                f"{tm.name!r} failed: {exc}") from None
