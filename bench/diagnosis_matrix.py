@@ -72,6 +72,7 @@ class Case:
     # folder name of the run that builds it (the control's, whose stages it then shares)
     moves: dict | None = None
     base_tag: str = ""
+    weak: bool = False  # the effect near the noise floor: "none" is also a right answer
 
 
 def _with(**effects) -> dict:
@@ -125,16 +126,21 @@ def mound_suite(root: Path, names: list[str], *, cells: tuple[int, ...],
         yield Case(name, folder, cfg)
 
 
-#: label (the candidate the diagnosis should name, "ligaments" for any group) -> the
-#: family's truth physics (:data:`breastmodel.phantom.subject_spec.PHYSICS`)
+#: case -> (label: the candidate the diagnosis should name, "ligaments" for any group; the
+#: family's truth physics, :data:`breastmodel.phantom.subject_spec.PHYSICS`). A ``_weak``
+#: case holds the same effect near the noise floor.
 FEBIO_CASES = {
-    "regions:asymmetry": "asymmetric",
-    "strain_stiffening": "gent_breast",
-    "regions:gland": "gland",
-    "ligaments": "ligaments",
-    "fascia": "fascia",
-    "skin": "skin",
-    "none": "bulk",
+    "regions:asymmetry": ("regions:asymmetry", "asymmetric"),
+    "strain_stiffening": ("strain_stiffening", "gent_breast"),
+    "strain_stiffening_weak": ("strain_stiffening", "gent_breast_weak"),
+    "regions:gland": ("regions:gland", "gland_10x"),
+    "regions:gland_weak": ("regions:gland", "gland"),
+    # no strength is visible on the family's bonded interface: on small-003's prone truth
+    # mesh (our solver) cables 30x the default stiffness moved the skin by 0.22 mm at most
+    "ligaments_weak": ("ligaments", "ligaments"),
+    "fascia": ("fascia", "fascia"),
+    "skin": ("skin", "skin"),
+    "none": ("none", "bulk"),
 }
 #: The measurement classes on the FEBio suite: the control subject (bulk truth) with one
 #: position's measured skin moved rigidly by about 4 mm (``_rigid``: a misregistration) or
@@ -155,17 +161,18 @@ def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path |
 
     for name in names:
         for seed in seeds:
-            physics = "bulk" if name in FEBIO_MEASUREMENT else FEBIO_CASES[name]
+            label, physics = (name, "bulk") if name in FEBIO_MEASUREMENT else FEBIO_CASES[name]
             make = family_maker(size="small", cache=cache, physics=physics)
             tag = f"{name.replace(':', '_')}-{seed}"
             base_tag = f"none-{seed}" if name in FEBIO_MEASUREMENT else tag
             subject, truth, _ = make(f"small-{seed}", root / base_tag / "subject")
             sub = read_subject(subject)
             cfg = suite_config("truth_labels", truth, list(sub.positions), sub.reference)
-            if name == "regions:gland":
+            if label == "regions:gland":
                 cfg["mesh"]["keep_gland"] = True
             if name not in FEBIO_MEASUREMENT:
-                yield Case(name, None, cfg, subject=subject, tag=tag)
+                yield Case(label, None, cfg, subject=subject, tag=tag,
+                           weak=name.endswith("_weak"))
                 continue
             prefix, move = FEBIO_MEASUREMENT[name]
             moved = [p for p in sub.positions if p.startswith(prefix)]
@@ -215,7 +222,8 @@ def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
                   and r["n_parameters"] == truth["n_parameters"] and r.get("held_out")), None)
     return {
         "label": case.label, "tag": case.tag, "answer": answer,
-        "correct": matches(answer, case.label),
+        "strength": "weak" if case.weak else "visible",
+        "correct": matches(answer, case.label) or (case.weak and answer == "none"),
         "rank": names.index(truth["name"]) + 1 if truth else None,
         "top3": names[:3], "explained": truth["explained"] if truth else None,
         "delta_bic": truth["delta_bic"] if truth else None,
@@ -236,11 +244,14 @@ def summarise(rows: list[dict]) -> dict:
     confusion = {t: {a: 0 for a in labels} for t in labels}
     for r in rows:
         confusion[r["label"]][r["answer"]] += 1
-    real = [r for r in rows if r["label"] != "none"]
+    real = [r for r in rows if r["label"] != "none" and r.get("strength") != "weak"]
+    weak = [r for r in rows if r.get("strength") == "weak"]
     nones = [r for r in rows if r["label"] == "none"]
     return {
         "top1": sum(matches(r["answer"], r["label"]) for r in real) / max(len(real), 1),
         "top3": sum(r["rank"] is not None and r["rank"] <= 3 for r in real) / max(len(real), 1),
+        # at the weak strength "none" is right and another effect is an error
+        "weak_errors": sum(not r["correct"] for r in weak) if weak else None,
         "false_alarms_on_none": sum(r["answer"] != "none" for r in nones) / max(len(nones), 1)
         if nones else None,
         "halved": [r["label"] for r in real if r["verified_worst_mhd_mm"] is not None

@@ -219,6 +219,12 @@ def test_truth_physics_presets():
     assert asym.materials[1]["E"] == pytest.approx(1.4) and asym.materials[3]["E"] == 2.8
     gland = truth_model(draw_spec(0, physics="gland+skin"))
     assert gland.has_gland and "skin" in gland.effects
+    strong = truth_model(draw_spec(0, breast_E_kpa=2.0, physics="gland_10x"))
+    assert strong.materials[4]["E"] == pytest.approx(20.0) and strong.materials[3]["E"] == 2.0
+    for physics, jm in (("gent_breast", 1.0), ("gent_breast_weak", 3.0)):
+        gent = truth_model(draw_spec(0, breast_E_kpa=2.0, physics=physics))
+        assert all(gent.materials[c]["name"] == "gent" and gent.materials[c]["Jm"] == jm
+                   and gent.materials[c]["E"] == 2.0 for c in (1, 3))
     with pytest.raises(ValueError, match="unknown physics"):
         draw_spec(0, physics="magic")
 
