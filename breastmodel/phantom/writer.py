@@ -81,7 +81,7 @@ def _deformed(material: np.ndarray, u: Callable[[np.ndarray], np.ndarray]) -> np
 #: Largest |x - X - u(x)| (mm) accepted for a marker or landmark where no exact root exists.
 #: A simulated position's u(x) outside the mesh is its closest surface point's displacement,
 #: continuous only up to which candidate triangle a search finds: on family seed 8 (gland
-#: 10x) the sternum marker's u jumps by 0.002-0.005 mm, so that Newton and a damped fixed
+#: 10x) the upper sternum marker's u jumps by 0.002-0.005 mm, so that Newton and a damped fixed
 #: point both stall at 0.0016-0.005 mm while I - grad u is near the identity. 0.01 mm is 50
 #: times below the family's finest voxel (0.5 mm); a fold of the deformation leaves a
 #: residual of its own size (millimetres).

@@ -322,9 +322,9 @@ def test_markers_follow_a_deformation_the_fixed_point_cannot_invert():
 
 
 def test_markers_where_the_deformation_jumps_by_less_than_the_root_tolerance():
-    """u continuous only up to a 0.003 mm jump at the root (the closest-point extrapolation
-    outside a simulated mesh): no exact root exists; the marker lands within ROOT_TOL_MM of
-    one. A fold (a jump of millimetres) is still an error."""
+    """u continuous only up to a 0.006 mm jump at the root (the closest-point extrapolation
+    outside a simulated mesh): no exact root exists (|x - X - u(x)| >= 0.003 mm); the marker
+    lands within ROOT_TOL_MM of one. A fold (a jump of millimetres) is still an error."""
     from breastmodel.phantom.writer import ROOT_TOL_MM, _deformed
 
     def jumping(jump):
