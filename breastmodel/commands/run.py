@@ -87,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
           f"{res['wall_s']:.1f} s")
     for pos, m in res["metrics"]["positions"].items():
         print(f"  {pos:>14}: MHD {m['mhd_mm']:.3f} mm, Hausdorff {m['hausdorff_mm']:.3f} mm, "
-              f"RMSE {m['rmse_mm']:.3f} mm, p95 {m['p95_mm']:.3f} mm"
+              f"RMSE {m['rmse_mm']:.3f} mm, p95 {m['p95_mm']:.3f} mm, over the skin both "
+              f"show {m.get('mhd_overlap_mm', float('nan')):.3f} mm"
               + ("" if m.get("converged", True) else "  (NOT converged)"))
     print(f"report: {Path(args.out) / 'report.html'}")
     return 0

@@ -60,6 +60,7 @@ __all__ = ["LABEL_TABLE", "export_images", "write_colour_tables", "write_febio",
 
 _SUMMARY_KEYS = ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm", "median_mm",
                  "mean_pred_to_meas_mm", "mean_meas_to_pred_mm", "n_pred", "n_meas",
+                 "mhd_overlap_mm", "uncovered_pred_fraction", "uncovered_meas_fraction",
                  "converged", "load_reached", "max_displacement_mm", "error")
 
 #: label code -> (name, RGB 0-255), as drawn by :mod:`imaging.views`

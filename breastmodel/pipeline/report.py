@@ -34,6 +34,10 @@ def _fmt(v) -> str:
     return html.escape(str(v))
 
 
+def _percent(v) -> str:
+    return "-" if v is None or not math.isfinite(v) else f"{100.0 * v:.1f}"
+
+
 def _table(header: list[str], rows: list[list]) -> str:
     th = "".join(f"<th>{html.escape(h)}</th>" for h in header)
     body = "".join("<tr>" + "".join(f"<td>{_fmt(c)}</td>" for c in r) + "</tr>" for r in rows)
@@ -291,9 +295,18 @@ def _distance_sections(metrics: Mapping[str, Any]) -> list[str]:
     and the internal landmarks' errors."""
     pos = metrics["positions"]
     parts = ["<h2 id='distances'>Skin surface distances (mm)</h2>",
-             _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "converged"],
+             _table(["position", "MHD", "Hausdorff", "RMSE", "p95", "MHD over the skin both show",
+                     "model skin past the measured edge (%)",
+                     "measured skin past the model's edge (%)", "converged"],
                     [[p, m.get("mhd_mm"), m.get("hausdorff_mm"), m.get("rmse_mm"),
-                      m.get("p95_mm"), m.get("converged")] for p, m in pos.items()])]
+                      m.get("p95_mm"), m.get("mhd_overlap_mm"),
+                      _percent(m.get("uncovered_pred_fraction")),
+                      _percent(m.get("uncovered_meas_fraction")), m.get("converged")]
+                     for p, m in pos.items()]),
+             "<p>The MHD counts every vertex of both skins; the next column leaves out the "
+             "skin one surface shows past the other's edge (a position's field of view cuts the "
+             "body elsewhere than the reference's), with the share left out of each beside "
+             "it.</p>"]
     parts += _refinement_section(metrics.get("refinement"))
     rows = [[p, r, s.get("n"), s.get("mean_mm"), s.get("mean_signed_mm"), s.get("rmse_mm"),
              s.get("p95_mm"), s.get("max_mm")]

@@ -114,12 +114,13 @@ def arm_figures(arm: str, result: Mapping[str, Any], calibrate, held_out) -> dic
     if fit.get("breast_E") is not None and truth:
         t = np.mean(list(truth.values()))
         f["breast_E_rel_error"] = abs(fit["breast_E"] - t) / t
-    mhd = result.get("mhd_mm") or {}
-    cal = [mhd[p] for p in calibrate if p in mhd]
-    held = [mhd[p] for p in held_out if p in mhd]
-    if cal:
-        f["mhd_calibrated_max_mm"] = max(cal)
-    if held:
-        f["mhd_held_out_max_mm"] = max(held)
+    for key, tail in (("mhd_mm", ""), ("mhd_overlap_mm", "_overlap")):
+        mhd = {p: v for p, v in (result.get(key) or {}).items() if v is not None}
+        cal = [mhd[p] for p in calibrate if p in mhd]
+        held = [mhd[p] for p in held_out if p in mhd]
+        if cal:
+            f[f"mhd_calibrated{tail}_max_mm"] = max(cal)
+        if held:
+            f[f"mhd_held_out{tail}_max_mm"] = max(held)
     return {k: (None if v is None or not np.isfinite(v) else round(float(v), 4))
             for k, v in f.items()}

@@ -117,6 +117,8 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
     if metrics:
         result["mhd_mm"] = {p: m.get("mhd_mm") for p, m in metrics["positions"].items()}
         result["p95_mm"] = {p: m.get("p95_mm") for p, m in metrics["positions"].items()}
+        result["mhd_overlap_mm"] = {p: m.get("mhd_overlap_mm")
+                                    for p, m in metrics["positions"].items()}
     result["wall_s"] = round(time.perf_counter() - t0, 2)
     result["figures"] = arm_figures(arm, result, calibrate, held_out)
     return result

@@ -38,6 +38,7 @@ def summary_rows(res: Mapping[str, Any]) -> dict[str, str]:
         dice = a.get("dice") or {}
         reg = a.get("registration") or {}
         mhd = a.get("mhd_mm") or {}
+        ovl = a.get("mhd_overlap_mm") or {}
         times = {}
         for st in a.get("stages") or []:
             times[st["name"]] = times.get(st["name"], 0.0) + float(st["wall_s"])
@@ -55,6 +56,9 @@ def summary_rows(res: Mapping[str, Any]) -> dict[str, str]:
                                    if mhd.get(p) is not None) or "-",
             "MHD held mm": " ".join(f"{_abbr(p)} {mhd[p]:.2f}" for p in a.get("held_out", [])
                                     if mhd.get(p) is not None) or "-",
+            "MHD shared cal mm": " ".join(f"{_abbr(p)} {ovl[p]:.2f}"
+                                          for p in a.get("calibrate", [])
+                                          if ovl.get(p) is not None) or "-",
             "time s": " ".join(f"{k[:4]} {v:.0f}" for k, v in times.items()),
             "error": _short_error(a.get("error")),
         })

@@ -50,9 +50,11 @@ TARGETS: tuple[Target, ...] = (
     Target("breast_E_rel_error", 0.10, "max", "truth_labels", 15),
     Target("mhd_calibrated_max_mm", 1.0, "max", "truth_labels", 15),
     Target("mhd_held_out_max_mm", 1.5, "max", "truth_labels", 15),
+    Target("mhd_calibrated_overlap_max_mm", 1.0, "max", "truth_labels", 15),
     Target("breast_E_rel_error", 0.10, "max", "pipeline", 15),
     Target("mhd_calibrated_max_mm", 1.0, "max", "pipeline", 15),
     Target("mhd_held_out_max_mm", 1.5, "max", "pipeline", 15),
+    Target("mhd_calibrated_overlap_max_mm", 1.0, "max", "pipeline", 15),
 )
 
 

@@ -298,3 +298,45 @@ def test_vertex_normals_of_sphere_are_radial():
     cosang = np.sum(nrm * v / 30.0, axis=1)
     # symmetric vertex stars: area-weighted normals within ~1 deg of radial at this level
     assert cosang.min() > np.cos(np.radians(1.0))
+
+
+def grid_sheet(x0: float, x1: float, y0: float, y1: float, z: float, step: float = 1.0):
+    """A flat open sheet z = const over [x0, x1] x [y0, y1], triangulated on a square grid."""
+    xs, ys = np.arange(x0, x1 + 1e-9, step), np.arange(y0, y1 + 1e-9, step)
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    v = np.column_stack([gx.ravel(), gy.ravel(), np.full(gx.size, z)])
+    n = len(ys)
+    ij = np.array([(i, j) for i in range(len(xs) - 1) for j in range(n - 1)])
+    a = ij[:, 0] * n + ij[:, 1]
+    f = np.vstack([np.column_stack([a, a + n, a + 1]), np.column_stack([a + 1, a + n, a + n + 1])])
+    return v, f
+
+
+def test_the_overlap_mhd_leaves_out_the_skin_one_surface_shows_past_the_others_edge():
+    # The measured sheet lies 1 mm above the predicted one and reaches 20 mm further along x
+    # (a field of view that shows more of the body): there the measured vertices are
+    # 1-20 mm from the predicted sheet's edge, and the all-vertex MHD grows with that
+    # stretch, while over the skin both show every distance is the 1 mm offset.
+    pv, pf = grid_sheet(0, 40, 0, 40, 0.0)
+    mv, mf = grid_sheet(0, 60, 0, 40, 1.0)
+    m = surface_metrics(pv, pf, mv, mf)
+    assert m["mhd_overlap_mm"] == pytest.approx(1.0, abs=1e-4)
+    past = mv[:, 0] > 40.0 + 1e-9
+    # the vertices over the predicted sheet's edges (x = 0, 40; y = 0, 40) have their
+    # closest point on its rim too: their side is undefined, and they are left out as well
+    on_edge = ~past & (np.isin(mv[:, 0], [0.0, 40.0]) | np.isin(mv[:, 1], [0.0, 40.0]))
+    assert m["uncovered_meas_fraction"] == pytest.approx((past | on_edge).mean(), abs=1e-9)
+    assert m["uncovered_pred_fraction"] == pytest.approx(0.0, abs=0.1)
+    # the vertices left out are those past the edge, with their true distances
+    expected_all = np.where(past, np.hypot(mv[:, 0] - 40.0, 1.0), 1.0).mean()
+    assert m["mean_meas_to_pred_mm"] == pytest.approx(expected_all, rel=1e-4)
+    assert m["mhd_mm"] > 3.0 * m["mhd_overlap_mm"]
+    # the other way round: the model shows the skin the measurement cuts off
+    r = surface_metrics(mv, mf, pv, pf)
+    assert r["mhd_overlap_mm"] == pytest.approx(1.0, abs=1e-4)
+    assert r["uncovered_pred_fraction"] == pytest.approx((past | on_edge).mean(), abs=1e-9)
+    # a closed surface has no edge: nothing is left out
+    v, f = icosphere(10.0, 2)
+    s = surface_metrics(v * 1.05, f, v, f)
+    assert s["uncovered_pred_fraction"] == s["uncovered_meas_fraction"] == 0.0
+    assert s["mhd_overlap_mm"] == pytest.approx(s["mhd_mm"])
