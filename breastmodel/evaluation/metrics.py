@@ -41,9 +41,9 @@ def _summary(d: np.ndarray) -> dict[str, float]:
 #: surface's rim is outside the other's coverage (twice the rim sampling's half spacing of
 #: :func:`~breastmodel.evaluation.distances.boundary_distance`). Two scans of one subject
 #: rarely show the same skin: a position's field of view cuts the body elsewhere, and its
-#: skin reaches past the model's (on the validation suite's small subject small-000, 13-18 %
-#: of the measured prone skin, 4-6 mm from the model's rim on average, made its MHD 1.13 mm
-#: against 0.68 mm over the skin both show). The pairs that end on a rim are left out of the
+#: skin reaches past the model's (on the validation suite's small subject small-000, 13 % of
+#: the measured prone skin, 4-6 mm from the model's rim on average, made its MHD 1.14 mm
+#: against 0.82 mm over the skin both show). The pairs that end on a rim are left out of the
 #: overlap figures, as when surfaces of partial overlap are matched (Turk & Levoy 1994,
 #: "Zippered polygon meshes from range images", SIGGRAPH); Mira et al. computed their MHD
 #: "only on the breast skin surface" for the same reason.

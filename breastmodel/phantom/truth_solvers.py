@@ -16,7 +16,7 @@ import numpy as np
 
 from breastmodel.phantom.truth_model import TruthModel
 
-__all__ = ["FEBIO_APPROXIMATED", "FEBIO_MAX_REFS", "FEBIO_STEPS", "TRUTH_SOLVERS",
+__all__ = ["FEBIO_APPROXIMATED", "FEBIO_ELEMENT", "FEBIO_MAX_REFS", "FEBIO_STEPS", "TRUTH_SOLVERS",
            "find_febio_for_truth", "solve_position", "truth_solver_executable"]
 
 log = logging.getLogger("breastmodel.phantom")
@@ -34,6 +34,9 @@ FEBIO_STEPS = 2
 #: second step and converged in 115 s with 60, where with 25 the retries crawled from load
 #: 0.94 to 0.98 in 10 minutes. Converging solves are unchanged (the limit is not reached).
 FEBIO_MAX_REFS = 60
+#: FEBio's element for truths: its locking-free UT4 tet. ``bench/truth_refinement.py`` sets
+#: "tet10" (quadratic tets on the same mesh) to tell the element's error from the mesh's.
+FEBIO_ELEMENT = "ut4"
 #: Effects for which a truth is written with FEBio approximations allowed: the wrinkling skin,
 #: written as shells that carry compression (without it, any approximation is refused before
 #: FEBio runs). What the file approximated is recorded with each truth, in its own words.
@@ -115,7 +118,7 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
     with tempfile.TemporaryDirectory(prefix=f"febio-{name}-") as tmp:
         wd = Path(work_dir) / name if work_dir is not None else Path(tmp)
         try:
-            run = solve_with_febio(model, work_dir=wd, febio=febio_path, element="ut4",
+            run = solve_with_febio(model, work_dir=wd, febio=febio_path, element=FEBIO_ELEMENT,
                                    threads=1, cache_dir=febio_cache, steps=FEBIO_STEPS,
                                    approximate=approximate, max_refs=FEBIO_MAX_REFS)
         except Exception as exc:  # noqa: BLE001 - re-raised naming the position and model
@@ -126,6 +129,6 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
         raise RuntimeError(f"phantom: FEBio did not converge for position {name!r} with "
                            f"truth model {tm.name!r}; log tail:\n{tail}")
     info = {"converged": True, "febio_wall_s": float(run.wall_s),
-            "cached": bool(getattr(run, "cached", False)), "element": "ut4",
+            "cached": bool(getattr(run, "cached", False)), "element": FEBIO_ELEMENT,
             "febio_approximations": list(run.approximations)}
     return np.asarray(run.displacement, float), info

@@ -74,7 +74,7 @@ def format_table(results: Sequence[Mapping[str, Any]], *, markdown: bool = False
     if not rows:
         return "(no results)"
     cols = ["subject", "kind", "arm", "dice b/m", "TRE mm", "rot deg", "E fit/truth kPa",
-            "MHD cal mm", "MHD held mm", "time s", "error"]
+            "MHD cal mm", "MHD held mm", "MHD shared cal mm", "time s", "error"]
     cells = [[_fmt(r.get(c, "")) for c in cols] for r in rows]
     if markdown:
         lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]

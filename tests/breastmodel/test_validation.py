@@ -100,6 +100,12 @@ def test_figures_from_an_arm_result():
     assert np.isclose(f["breast_E_rel_error"], 0.35)
     assert f["mhd_calibrated_max_mm"] == 2.78 and f["mhd_held_out_max_mm"] == 4.14
     assert f["completed"] == 1.0
+    assert "mhd_calibrated_overlap_max_mm" not in f  # a result written before the figure
+    r["mhd_overlap_mm"] = {"prone": 0.81, "supine": 0.2, "tilt": None}
+    f = _figures("pipeline", r, ["supine", "prone"], ["tilt"])
+    assert f["mhd_calibrated_overlap_max_mm"] == 0.81
+    assert "mhd_held_out_overlap_max_mm" not in f  # the held-out position has no figure
+    assert f["mhd_calibrated_max_mm"] == 2.78
 
 
 def test_family_maker_remakes_a_subject_whose_spec_changed(tmp_path, monkeypatch):
