@@ -112,7 +112,8 @@ def surface_metrics(pred_vertices, pred_triangles, meas_vertices, meas_triangles
         "n_meas": mp["n"],
         "mean_pred_to_meas_overlap_mm": o_pm,
         "mean_meas_to_pred_overlap_mm": o_mp,
-        "mhd_overlap_mm": max(o_pm, o_mp),
+        # no shared skin in one direction: no overlap figure (NaN)
+        "mhd_overlap_mm": max(o_pm, o_mp) if np.isfinite([o_pm, o_mp]).all() else float("nan"),
         "uncovered_pred_fraction": float(1.0 - in_pm.mean()),
         "uncovered_meas_fraction": float(1.0 - in_mp.mean()),
     }

@@ -335,6 +335,10 @@ def test_the_overlap_mhd_leaves_out_the_skin_one_surface_shows_past_the_others_e
     r = surface_metrics(mv, mf, pv, pf)
     assert r["mhd_overlap_mm"] == pytest.approx(1.0, abs=1e-4)
     assert r["uncovered_pred_fraction"] == pytest.approx((past | on_edge).mean(), abs=1e-9)
+    # sheets side by side share no skin: every pair ends on an edge, and there is no figure
+    far = surface_metrics(pv, pf, mv + [60.0, 0.0, 0.0], mf)
+    assert far["uncovered_pred_fraction"] == far["uncovered_meas_fraction"] == 1.0
+    assert np.isnan(far["mhd_overlap_mm"]) and np.isfinite(far["mhd_mm"])
     # a closed surface has no edge: nothing is left out
     v, f = icosphere(10.0, 2)
     s = surface_metrics(v * 1.05, f, v, f)
