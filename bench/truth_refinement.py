@@ -65,7 +65,7 @@ def label_gap(fine: Path, other: Path, position: str) -> dict:
 
     ims = [sitk.ReadImage(str(d / f"{position}_labels.nii.gz")) for d in (fine, other)]
     sp = np.array(ims[0].GetSpacing())[::-1]
-    a, b = ((sitk.GetArrayFromImage(i) % 2) == 1 for i in ims)  # breast 1 and gland 3
+    a, b = (np.isin(sitk.GetArrayFromImage(i), (1, 3)) for i in ims)  # breast and gland
     surf = [m & ~ndi.binary_erosion(m) for m in (a, b)]
     da, db = (ndi.distance_transform_edt(~s, sampling=sp) for s in surf)
     d = np.concatenate([da[surf[1]], db[surf[0]]])

@@ -61,7 +61,8 @@ def score_position(problem: Problem, x: np.ndarray, position: str, *,
                    details: bool = False) -> dict:
     """Metrics of the predicted node positions x (N, 3) mm against a position's measured skin.
 
-    Returns the :func:`breastmodel.evaluation.surface_metrics` dict; with ``details`` also
+    Returns the :func:`breastmodel.evaluation.surface_metrics` dict (its shared-skin figures
+    only with ``details``); with ``details`` also
     ``regions`` (per skin region), ``landmarks`` (when known) and ``signed_error`` ((n_skin,)
     mm, predicted skin nodes to the measured surface, positive outside) with ``skin_nodes``.
     """
@@ -81,7 +82,7 @@ def score_position(problem: Problem, x: np.ndarray, position: str, *,
     remap[nodes] = np.arange(len(nodes))
     pv, pf = x[nodes], remap[faces]
     mv, mf = problem.skins[position]
-    out = surface_metrics(pv, pf, mv, mf)
+    out = surface_metrics(pv, pf, mv, mf, overlap=details)
     if not details:
         return out
     d, _ = point_to_surface(pv, mv, mf, signed=True)
