@@ -41,7 +41,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "validate.json")
     ap.add_argument("--febio", default=None, help="FEBio 4 executable (default $FEBIO, then "
                     "../shared/febio/febio4)")
-    ap.add_argument("--arms", default="pipeline,truth_labels")
+    ap.add_argument("--arms", default="pipeline,truth_labels",
+                    help="comma-separated: pipeline, truth_labels, reference_truth (the "
+                         "reference's truth label map alone, the other positions segmented)")
     ap.add_argument("--mesh-size", type=_size, default="auto",
                     help="fitted model's tet edge, mm, or auto (the pipeline's default)")
     ap.add_argument("--force", action="store_true",

@@ -19,13 +19,15 @@ from breastmodel.pipeline.segment import PREPROCESS_KEYS, SEGMENT_KEYS
 from mechanics.solver import SolverOptions
 
 __all__ = [
-    "DEFAULTS", "FIT_PARAMETER_KEYS", "check_model", "get_param", "load_run_config",
+    "DEFAULTS", "FIT_PARAMETER_KEYS", "check_model", "get_param", "given_labels",
+    "load_run_config",
     "materials_by_code", "resolve_config", "set_params",
 ]
 
 # the stages' own keys, so that run.toml and the stage commands accept the same tables: a
-# run takes its positions from the subject and may give truth label maps instead
-_SEGMENT_KEYS = (SEGMENT_KEYS - {"positions"}) | {"labels"}
+# run takes its positions from the subject and may give label maps instead (corrected ones,
+# or a phantom's truth), for every position or for those in ``labels_positions``
+_SEGMENT_KEYS = (SEGMENT_KEYS - {"positions"}) | {"labels", "labels_positions"}
 _PREPROCESS_KEYS = PREPROCESS_KEYS
 _REGISTER_KEYS = REGISTER_KEYS
 #: every option of the solver (:class:`mechanics.solver.SolverOptions`), by its field names
@@ -110,6 +112,7 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
         check_keys(table, _TABLE_KEYS[name], where=f"{where} [{name}]")
     cfg = _merge(DEFAULTS, raw)
     check_model(cfg["model"], where=where)
+    _check_given_labels(cfg["segment"], where)
     sf = cfg["stress_free"]
     if sf["method"] not in ("inverse", "paper", "none"):
         raise ConfigError(f"{where} [stress_free] method must be 'inverse', 'paper' or "
@@ -143,6 +146,31 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     if fit["enabled"] and not fit["parameters"]:
         raise ConfigError(f"{where} [fit] enabled = true needs [fit.parameters]")
     return cfg
+
+
+def _check_given_labels(seg: Mapping[str, Any], where: str) -> None:
+    """``labels_positions`` names positions (a list of strings) whose label maps come from
+    ``labels``, which it needs."""
+    only = seg.get("labels_positions")
+    if only is None:
+        return
+    if (not isinstance(only, list) or not only
+            or not all(isinstance(p, str) and p for p in only)):
+        raise ConfigError(f"{where} [segment] labels_positions must be a non-empty list of "
+                          f"position names, got {only!r}")
+    if not seg.get("labels"):
+        raise ConfigError(f"{where} [segment] labels_positions needs labels (the folder of "
+                          "<position>_labels.nii.gz)")
+
+
+def given_labels(seg: Mapping[str, Any], position: str) -> Path | None:
+    """The label map ``[segment]`` gives for ``position`` instead of segmenting it
+    (``labels/<position>_labels.nii.gz``; every position, or those in
+    ``labels_positions``), or None."""
+    folder, only = seg.get("labels"), seg.get("labels_positions")
+    if not folder or (only is not None and position not in only):
+        return None
+    return Path(folder) / f"{position}_labels.nii.gz"
 
 
 def _number(value: Any, param, where: str) -> None:

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from breastmodel.errors import StageError
+from breastmodel.pipeline.config import given_labels
 from breastmodel.pipeline.model_stages import (
     check_landmarks,
     fit_stage,
@@ -75,6 +76,16 @@ def _check_subject(subject, cfg: Mapping[str, Any]) -> list[str]:
         if p not in positions:
             raise StageError("subject", f"[evaluate] position {p!r} is missing from the "
                              f"subject (it has {positions})", subject.root / "subject.toml")
+    for p in cfg["segment"].get("labels_positions") or ():
+        if p not in positions:
+            raise StageError("subject", f"[segment] labels_positions: position {p!r} is "
+                             f"missing from the subject (it has {positions})",
+                             subject.root / "subject.toml")
+    for p in positions:
+        src = given_labels(cfg["segment"], p)
+        if src is not None and not src.is_file():
+            raise StageError("segment", f"[segment] labels = {str(src.parent)!r} has no "
+                             f"label map for position {p!r}", src)
     if cfg["register"].get("require_fiducials", True) and not subject.fiducials:
         raise StageError("register", "no fiducials.csv (or fiducials.mrk.json): rigid "
                          "registration is initialised from the fiducials; add them or set "
@@ -152,8 +163,7 @@ def _labels(seg_dirs: Mapping[str, Path], pos: str) -> Path:
 
 def _segment_inputs(subject, pos: str, cfg: Mapping[str, Any]) -> list:
     """What a position's segmentation is keyed on: its volume, or its given label map."""
-    given = cfg["segment"].get("labels")
-    src = Path(given) / f"{pos}_labels.nii.gz" if given else None
+    src = given_labels(cfg["segment"], pos)
     return [src] if src is not None and src.is_file() else [subject.positions[pos].volume_path]
 
 

@@ -26,22 +26,24 @@ __all__ = ["mesh_options", "mesh_stage", "problem_stage", "register_stage", "seg
 
 def segment_stage(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[Path], None]:
     """The label map of one position (``<position>_labels.nii.gz``): segmented, or copied
-    from ``[segment] labels``; it must hold breast tissue and muscle."""
+    from ``[segment] labels`` (every position, or those of ``labels_positions``); it must
+    hold breast tissue and muscle."""
 
     def fn(d: Path) -> None:
         import SimpleITK as sitk
 
+        from breastmodel.pipeline.config import given_labels
         from breastmodel.pipeline.segment import segment_position
         from imaging.io import read_volume, write_volume
 
         vol = subject.positions[position].volume_path
-        seg = dict(cfg["segment"])
-        given = seg.pop("labels", None)
-        if given:
-            src = Path(given) / f"{position}_labels.nii.gz"
+        src = given_labels(cfg["segment"], position)
+        seg = {k: v for k, v in cfg["segment"].items()
+               if k not in ("labels", "labels_positions")}
+        if src is not None:
             if not src.is_file():
-                raise StageError("segment", f"[segment] labels = {given!r} has no label map "
-                                 f"for position {position!r}", src)
+                raise StageError("segment", f"[segment] labels = {str(src.parent)!r} has no "
+                                 f"label map for position {position!r}", src)
             labels = read_volume(src)
             write_volume(labels, d / f"{position}_labels.nii.gz")
         else:

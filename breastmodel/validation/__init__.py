@@ -8,7 +8,10 @@ Each subject is run in two *arms*:
     fit of one breast modulus on the calibration positions, prediction of every position;
 ``truth_labels``
     the same with the truth label maps given (``[segment] labels``), which takes the
-    segmentation out of the question and separates the stages.
+    segmentation out of the question and separates the stages;
+``reference_truth`` (on request)
+    the truth label map of the reference position alone (the mesh is built from it), the
+    other positions segmented: which of the two segmentations a miss comes from.
 
 A stage that stops is recorded with its error (the figures of the stages before it are
 kept); it never stops the suite. :data:`TARGETS` lists the figures the open issues target:
@@ -25,8 +28,16 @@ from breastmodel.validation.suite import (
     suite_config,
 )
 from breastmodel.validation.tables import format_table, summary_rows
-from breastmodel.validation.targets import ARMS, FIT_PARAMETER, TARGETS, Target, check_targets
+from breastmodel.validation.targets import (
+    ARMS,
+    EXTRA_ARMS,
+    FIT_PARAMETER,
+    TARGETS,
+    Target,
+    check_targets,
+)
 
-__all__ = ["ARMS", "FIT_PARAMETER", "TARGETS", "Target", "arm_figures", "check_targets",
-           "chest_wall_points", "evaluate_subject", "family_maker", "format_table", "run_arm",
-           "run_suite", "split_positions", "suite_config", "summary_rows"]
+__all__ = ["ARMS", "EXTRA_ARMS", "FIT_PARAMETER", "TARGETS", "Target", "arm_figures",
+           "check_targets", "chest_wall_points", "evaluate_subject", "family_maker",
+           "format_table", "run_arm", "run_suite", "split_positions", "suite_config",
+           "summary_rows"]

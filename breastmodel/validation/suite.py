@@ -16,7 +16,7 @@ from breastmodel.validation.figures import (
     registration_figures,
     truth_breast_E,
 )
-from breastmodel.validation.targets import ARMS, FIT_PARAMETER, check_targets
+from breastmodel.validation.targets import ARMS, EXTRA_ARMS, FIT_PARAMETER, check_targets
 
 log = logging.getLogger("breastmodel.validation")
 
@@ -39,7 +39,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
 
     Parameters
     ----------
-    arm : one of :data:`ARMS`
+    arm : one of :data:`ARMS` or :data:`EXTRA_ARMS`
     truth_dir : the subject's truth folder (``<position>_labels.nii.gz``)
     positions, reference : the subject's positions and its reference
     mesh_size_mm : tet edge of the fitted model, mm, or "auto" (the pipeline's default)
@@ -48,8 +48,8 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
     """
     from breastmodel.pipeline.config import resolve_config
 
-    if arm not in ARMS:
-        raise ValueError(f"validation: unknown arm {arm!r}; known {ARMS}")
+    if arm not in ARMS + EXTRA_ARMS:
+        raise ValueError(f"validation: unknown arm {arm!r}; known {ARMS + EXTRA_ARMS}")
     calibrate, held_out = split_positions(positions, reference)
     nh = {"name": "neo_hookean", "nu": 0.49}
     raw: dict[str, Any] = {
@@ -64,6 +64,9 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
     }
     if arm == "truth_labels":
         raw["segment"] = {"labels": str(Path(truth_dir).resolve())}
+    elif arm == "reference_truth":
+        raw["segment"] = {"labels": str(Path(truth_dir).resolve()),
+                          "labels_positions": [reference]}
     return resolve_config(raw, where=f"validation ({arm})")
 
 

@@ -10,6 +10,9 @@ import numpy as np
 
 #: The arms each subject runs in.
 ARMS = ("pipeline", "truth_labels")
+#: Arms run on request (``bench/validate.py --arms``) to localise a miss: the truth label
+#: map of the reference position alone (the mesh's source), the other positions segmented.
+EXTRA_ARMS = ("reference_truth",)
 
 #: The fitted parameter: one breast modulus for both breasts (the paper's single tissue).
 FIT_PARAMETER = "materials.breast_left.E|materials.breast_right.E"

@@ -284,6 +284,52 @@ def test_segmentation_without_breast_fails_at_segment(phantom, tmp_path):
         for p in (tmp_path / "out" / "cache" / "segment").glob("*/stage.json"))
 
 
+def test_given_labels_for_some_positions_the_others_segmented(phantom, tmp_path):
+    """``labels_positions``: the reference's label map is copied from ``labels``, another
+    position is segmented from its volume; a named position without its file, or one the
+    subject lacks, stops before any stage runs."""
+    import SimpleITK as sitk
+
+    from breastmodel.pipeline.config import given_labels
+    from breastmodel.pipeline.subject_stages import segment_stage
+    from imaging.subject import read_subject
+
+    truth = Path(str(phantom) + "_truth")
+    labels = tmp_path / "labels"
+    labels.mkdir()
+    shutil.copy(truth / "supine_labels.nii.gz", labels)
+    seg = {"labels": str(labels), "labels_positions": ["supine"]}
+    assert given_labels(seg, "supine") == labels / "supine_labels.nii.gz"
+    assert given_labels(seg, "prone") is None
+    assert given_labels({"labels": str(labels)}, "prone") == labels / "prone_labels.nii.gz"
+    assert given_labels({}, "supine") is None
+
+    subject = read_subject(phantom)
+    cfg = resolve_config({**_config(truth), "segment": seg})
+    seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
+    for pos in ("supine", "prone"):
+        (tmp_path / pos).mkdir()
+        segment_stage(subject, pos, seg_cfg)(tmp_path / pos)
+    arr = {p: sitk.GetArrayFromImage(sitk.ReadImage(str(f))) for p, f in [
+        ("given", tmp_path / "supine" / "supine_labels.nii.gz"),
+        ("truth", truth / "supine_labels.nii.gz"),
+        ("segmented", tmp_path / "prone" / "prone_labels.nii.gz"),
+        ("truth_prone", truth / "prone_labels.nii.gz")]}
+    assert np.array_equal(arr["given"], arr["truth"])
+    assert (tmp_path / "prone" / "prone_qa.png").is_file()  # the segmentation's own figure
+    assert not np.array_equal(arr["segmented"], arr["truth_prone"])
+    breast = [np.isin(arr[k], (1, 3)) for k in ("segmented", "truth_prone")]
+    dice = 2 * (breast[0] & breast[1]).sum() / (breast[0].sum() + breast[1].sum())
+    assert dice > 0.9
+
+    for bad, match in [(["supine", "prone"], r"^segment.*no label map for position 'prone'"),
+                       (["supine", "upright"], r"^subject.*'upright' is missing")]:
+        cfg = resolve_config({**_config(truth), "segment": {**seg, "labels_positions": bad}})
+        with pytest.raises(StageError, match=match):
+            run_subject(phantom, cfg, tmp_path / "out", progress=False)
+        assert not (tmp_path / "out" / "cache" / "segment").exists()
+
+
 @pytest.mark.parametrize("raw, match", [
     ({"model": {"materials": {"breast_middle": {"name": "neo_hookean", "E": 1.0}}}},
      "unknown region"),
@@ -295,6 +341,9 @@ def test_segmentation_without_breast_fails_at_segment(phantom, tmp_path):
     ({"mesh": {"size_mm": "fine"}}, "auto"),
     ({"mesh": {"size_mm": -2.0}}, "auto"),
     ({"model": {"effects": {"gravity": {"direction": [0, 0, 1]}}}}, "per position"),
+    ({"segment": {"labels_positions": ["supine"]}}, "needs labels"),
+    ({"segment": {"labels": "x", "labels_positions": "supine"}}, "list of position names"),
+    ({"segment": {"labels": "x", "labels_positions": []}}, "list of position names"),
 ])
 def test_bad_config_is_rejected(raw, match):
     with pytest.raises(ConfigError, match=match):

@@ -35,8 +35,11 @@ def test_suite_config_arms(tmp_path):
     assert cfg["segment"]["labels"] == str(tmp_path.resolve())
     assert cfg["fit"]["enabled"] and cfg["fit"]["calibrate"] == ["supine", "prone"]
     assert cfg["fit"]["evaluate"] == ["supine_tilted"]
+    assert "labels_positions" not in cfg["segment"]
     own = suite_config("pipeline", tmp_path, ["prone", "supine"], "supine")
     assert "labels" not in own["segment"]
+    ref = suite_config("reference_truth", tmp_path, ["prone", "supine"], "supine")
+    assert ref["segment"] == {"labels": str(tmp_path.resolve()), "labels_positions": ["supine"]}
     with pytest.raises(ValueError, match="unknown arm"):
         suite_config("nope", tmp_path, ["prone", "supine"], "supine")
 
