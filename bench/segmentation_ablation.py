@@ -1,0 +1,159 @@
+"""Which voxels of the reference's segmentation move the fitted modulus: the suite's fit rerun
+with the reference position's label map swapped piece by piece between the truth and the
+pipeline's own segmentation (every other position keeps its truth labels, so the measured
+skins are the same in every row).
+
+    python bench/validate.py --seeds 4,9 --arms pipeline,truth_labels --work W  # first
+    python bench/segmentation_ablation.py --work W --subjects small-004,small-009
+
+Rows per subject (the reference's label map the mesh is built from):
+
+- ``truth``: the truth labels;
+- ``pipeline``: the pipeline's own segmentation;
+- ``truth + spill``: the truth with the voxels the pipeline calls muscle where the truth has
+  breast tissue (the *spill*) set to muscle;
+- ``truth + skin spill`` / ``truth + fat spill``: the spill's voxels whose phantom tissue is
+  skin / the others (fat, gland);
+- ``pipeline - spill``: the pipeline's segmentation with the spill given back to the breast.
+
+Also prints the spill's size and the mean offset of the pipeline's breast-muscle interface
+from the truth's (face centres, mm, positive into the breast). Writes ``--json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
+    sys.path[0] = str(ROOT)
+
+import numpy as np  # noqa: E402
+
+SKIN_CODE = 4  # the phantom's fine tissue code of skin (breastmodel.phantom.anatomy.SKIN)
+
+
+def _read(path: Path):
+    import SimpleITK as sitk
+
+    img = sitk.ReadImage(str(path))
+    return img, sitk.GetArrayFromImage(img)
+
+
+def _interface_offset_mm(truth: np.ndarray, own: np.ndarray, spacing_zyx) -> float:
+    """Mean signed distance of the pipeline's breast-muscle faces from the truth muscle's
+    boundary (mm; positive: outside the truth muscle, into the breast)."""
+    from scipy import ndimage
+
+    sp = np.asarray(spacing_zyx, float)
+    muscle = truth == 2
+    sdf = np.where(muscle, -ndimage.distance_transform_edt(muscle, sampling=sp) + 0.5 * sp.min(),
+                   ndimage.distance_transform_edt(~muscle, sampling=sp) - 0.5 * sp.min())
+    pts = []
+    for ax in range(3):
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[ax], hi[ax] = slice(0, -1), slice(1, None)
+        a, b = own[tuple(lo)], own[tuple(hi)]
+        idx = np.argwhere(((a == 2) & np.isin(b, (1, 3))) | ((b == 2) & np.isin(a, (1, 3))))
+        idx = idx.astype(float)
+        idx[:, ax] += 0.5
+        pts.append(idx)
+    faces = np.vstack(pts)
+    return float(ndimage.map_coordinates(sdf, faces.T, order=1).mean()) if len(faces) else 0.0
+
+
+def variants(truth: np.ndarray, own: np.ndarray, tissue: np.ndarray) -> dict[str, np.ndarray]:
+    """The reference label maps of the rows (see the module's docstring)."""
+    spill = np.isin(truth, (1, 3)) & (own == 2)
+    skin = spill & (tissue == SKIN_CODE)
+    out = {"truth": truth, "pipeline": own}
+    for name, part in [("truth + spill", spill), ("truth + skin spill", skin),
+                       ("truth + fat spill", spill & ~skin)]:
+        a = truth.copy()
+        a[part] = 2
+        out[name] = a
+    a = own.copy()
+    a[spill] = 1
+    out["pipeline - spill"] = a
+    return out
+
+
+def ablate(work: Path, name: str, out: Path) -> dict:
+    """The rows of one subject of a validation work folder (its pipeline arm run first)."""
+    import SimpleITK as sitk
+
+    from breastmodel.pipeline.run import run_subject
+    from breastmodel.validation import suite_config
+    from breastmodel.validation.figures import truth_breast_E
+    from imaging.subject import read_subject
+
+    subject_dir, truth_dir = work / "subjects" / name, work / "subjects" / f"{name}_truth"
+    subject = read_subject(subject_dir)
+    ref, positions = subject.reference, list(subject.positions)
+    own_path = work / "runs" / name / "pipeline" / f"{ref}_labels_in_reference.nii.gz"
+    if not own_path.is_file():
+        raise SystemExit(f"segmentation_ablation: {own_path} is missing: run "
+                         f"bench/validate.py --arms pipeline on {name} first")
+    img, truth = _read(truth_dir / f"{ref}_labels.nii.gz")
+    _, own = _read(own_path)
+    _, tissue = _read(truth_dir / f"{ref}_tissue.nii.gz")
+    spill = np.isin(truth, (1, 3)) & (own == 2)
+    res = {"subject": name, "reference": ref,
+           "spill_voxels": int(spill.sum()),
+           "skin_spill_voxels": int((spill & (tissue == SKIN_CODE)).sum()),
+           "interface_offset_mm": _interface_offset_mm(truth, own, img.GetSpacing()[::-1]),
+           "truth_E": truth_breast_E(truth_dir).get("left"),
+           "rows": {}}
+    for row, labels in variants(truth, own, tissue).items():
+        d = out / name / row.replace(" ", "_").replace("+", "plus").replace("-", "minus")
+        (d / "labels").mkdir(parents=True, exist_ok=True)
+        for pos in positions:
+            if pos != ref:
+                src = truth_dir / f"{pos}_labels.nii.gz"
+                (d / "labels" / src.name).write_bytes(src.read_bytes())
+        new = sitk.GetImageFromArray(labels.astype(np.uint8))
+        new.CopyInformation(img)
+        sitk.WriteImage(new, str(d / "labels" / f"{ref}_labels.nii.gz"))
+        cfg = suite_config("truth_labels", d / "labels", positions, ref)
+        run_subject(subject_dir, cfg, d / "run", progress=False)
+        params = json.loads((d / "run" / "params.json").read_text())
+        res["rows"][row] = params["parameters"]["materials.breast_left.E"]
+        logging.info("%s %s: E %.3f kPa", name, row, res["rows"][row])
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--work", type=Path, required=True, help="a bench/validate.py work folder")
+    ap.add_argument("--subjects", required=True, help="comma-separated, e.g. small-004")
+    ap.add_argument("--out", type=Path, default=None, help="default WORK/ablation")
+    ap.add_argument("--json", type=Path,
+                    default=ROOT / "bench" / "results" / "segmentation_ablation.json")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    os.environ.setdefault("OMP_NUM_THREADS", "2")
+    out = args.out or args.work / "ablation"
+    results = [ablate(args.work, n, out) for n in args.subjects.split(",")]
+    rows = list(results[0]["rows"])
+    print("| subject | spill voxels (skin) | interface offset mm | truth E | "
+          + " | ".join(rows) + " |")
+    print("|" + "---|" * (4 + len(rows)))
+    for r in results:
+        print(f"| {r['subject']} | {r['spill_voxels']} ({r['skin_spill_voxels']}) | "
+              f"{r['interface_offset_mm']:+.2f} | {r['truth_E']} | "
+              + " | ".join(f"{r['rows'][k]:.3f}" for k in rows) + " |")
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    from breastmodel.config import write_json
+
+    write_json(args.json, {"command": " ".join(sys.argv), "results": results})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
