@@ -73,10 +73,12 @@ def parameter_units(model: Mapping[str, Any], path: str) -> str:
     return "?"
 
 
-def _qa_sections(images: Mapping[str, Any]) -> list[str]:
-    """Segmentation and registration QA: figures and tables."""
+def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[str]:
+    """Segmentation and registration QA: figures and tables (``segment``: the run's
+    ``[segment]`` table, which says which label maps were given rather than segmented)."""
     import SimpleITK as sitk
 
+    from breastmodel.pipeline.config import given_labels
     from imaging.io import read_volume
     from imaging.qa import tissue_volumes_ml
 
@@ -92,11 +94,14 @@ def _qa_sections(images: Mapping[str, Any]) -> list[str]:
         labels = sitk.ReadImage(str(lab_path))
         img = read_volume(vols[pos])  # a file or a DICOM series folder
         v = tissue_volumes_ml(labels)
-        rows.append([pos, *(v.get(k) for k in ("breast", "muscle", "gland"))])
+        given = given_labels(segment, pos)
+        rows.append([pos, "segmented" if given is None else f"given: {given}",
+                     *(v.get(k) for k in ("breast", "muscle", "gland"))])
         parts.append(img_tag(segmentation_figure(pos, img, labels, "segmentation"),
                           f"segmentation {pos}"))
     if rows:
-        parts.insert(2, _table(["position", "breast (ml)", "muscle (ml)", "gland (ml)"], rows))
+        parts.insert(2, _table(["position", "label map", "breast (ml)", "muscle (ml)",
+                                "gland (ml)"], rows))
     reg = images.get("registration") or {}
     ref = images["reference"]
     parts += ["<h2 id='registration'>Registration QA</h2>",
@@ -243,7 +248,7 @@ def write_report(path: Path, metrics: Mapping[str, Any], params: Mapping[str, An
     parts += _distance_sections(metrics)
     parts += _error_map_section(pictures)
     if images:
-        parts += _qa_sections(images)
+        parts += _qa_sections(images, (config or {}).get("segment") or {})
     parts += ["<h2 id='history'>Stress-free geometry and fit</h2>",
               img_tag(history_figure(fit_info, sf), "history")]
     parts += _fit_sections(fit_info)

@@ -458,6 +458,9 @@ def test_report_shows_every_section(first_run):
     assert "<td>kPa</td>" in html and "one colour scale" in html
     # one error map per position, three segmentation and two registration figures, history
     assert html.count("data:image/png;base64,") == 3 + 3 + 2 + 1
+    # every label map of this run was given ([segment] labels), and the table says so
+    assert "<th>label map</th>" in html and html.count("<td>given: ") == 3
+    assert "<td>segmented</td>" not in html
 
 
 def test_febio_runs_the_written_model_to_our_displacements(first_run, tmp_path):
