@@ -5,8 +5,9 @@ It asserts that the suite reports every stage of every subject (a stage that sto
 with its error, never a crash) and every target of :data:`breastmodel.validation.TARGETS`
 that is enforced (their issues have landed); the others are recorded in the printed table
 and in ``$BREASTMODEL_VALIDATION_OUT/validation_slice.json`` when that is set. Then the
-diagnosis on the torso subject's truth-labels run: the control, prone misregistered, the
-skin offset (``DIAGNOSIS_CASES``).
+diagnosis on the torso subject's truth-labels run: the control, prone or tilted
+misregistered, the skin offset (``DIAGNOSIS_CASES``), and on the same subject drawn with a
+hidden left/right asymmetry.
 
     pytest -m validation -rP tests/validation          # about 25-30 minutes on 2 cores
 """
@@ -119,38 +120,75 @@ def _offset(v, t):
 
 
 #: The diagnosis' CI slice on FEBio truth: the torso subject (bulk truth, the control) as its
-#: truth-labels run fitted it, and its problem with the prone measured skin moved rigidly by
-#: about 4 mm (a misregistration) or every measured skin offset 1 mm (a segmentation bias).
+#: truth-labels run fitted it, and its problem with the prone or the tilted measured skin
+#: moved rigidly by about 4 mm (a misregistration of that position) or every measured skin
+#: offset 1 mm (a segmentation bias). label -> {position prefix ("*": every one): move}.
 DIAGNOSIS_CASES = {"none": {}, "misregistration:prone": {"prone": _rigid},
+                   "misregistration:supine_tilted": {"supine_tilted": _rigid},
                    "skin_offset": {"*": _offset}}
+
+
+def _answer(run_dir: Path, work: Path) -> tuple[str, dict, dict]:
+    """The diagnosis' answer (its first significant candidate, else "none"), that
+    candidate's row and the whole diagnosis."""
+    from breastmodel.diagnosis import load_run, rank_candidates
+
+    d = rank_candidates(load_run(run_dir), progress=False, verify_top=0, work_dir=work)
+    significant = [r for r in d["ranking"] if r["significant"]]
+    return (significant[0]["name"] if significant else "none",
+            significant[0] if significant else {}, d)
 
 
 @pytest.mark.parametrize("label", list(DIAGNOSIS_CASES))
 def test_the_diagnosis_names_the_cause_on_febio_truth(slice_results, slice_work, tmp_path,
                                                       label):
-    from breastmodel.diagnosis import load_run, rank_candidates
+    from breastmodel.diagnosis import load_run
     from breastmodel.pipeline.problem import move_measured_skin
     from breastmodel.pipeline.run import run_problem
 
     base = load_run(slice_work / "runs" / "small-003" / "truth_labels")
-    run_dir = base.out
-    moves = DIAGNOSIS_CASES[label]
+    run_dir, expected = base.out, label
+    moves = {p: m for q, m in DIAGNOSIS_CASES[label].items() for p in base.positions
+             if q == "*" or p.startswith(q)}
     if moves:
         folder = tmp_path / "problem"
         shutil.copytree(base.problem_dir, folder)
-        for pos, move in ((p, m) for q, m in moves.items()
-                          for p in (base.positions if q == "*" else [q])):
+        for pos, move in moves.items():
             move_measured_skin(folder, pos, move)
         run_dir = tmp_path / "run"
         run_problem(folder, base.config, run_dir, progress=False)
-    d = rank_candidates(load_run(run_dir), progress=False, verify_top=0,
-                        work_dir=tmp_path / "evaluations")
-    significant = [r for r in d["ranking"] if r["significant"]]
-    answer = significant[0]["name"] if significant else "none"
+    if label.startswith("misregistration:"):  # named by the position it moved
+        (moved,) = moves
+        expected = f"misregistration:{moved}"
+    answer, first, d = _answer(run_dir, tmp_path / "evaluations")
     print(f"{label}: {answer}; {d['verdict']}")
-    assert answer == label, d["verdict"]
+    assert answer == expected, d["verdict"]
     if label == "skin_offset":
-        assert significant[0]["estimate"]["measured.offset_mm"] == pytest.approx(-1.0, abs=0.3)
-    if label == "misregistration:prone":
-        moved = float(np.linalg.norm([3.0, 1.0, -2.5]))
-        assert significant[0]["transform"]["translation_mm"] == pytest.approx(moved, rel=0.3)
+        assert first["estimate"]["measured.offset_mm"] == pytest.approx(-1.0, abs=0.3)
+    if label.startswith("misregistration:"):
+        shift = float(np.linalg.norm([3.0, 1.0, -2.5]))
+        assert first["transform"]["translation_mm"] == pytest.approx(shift, rel=0.3)
+
+
+def test_the_diagnosis_names_a_hidden_asymmetry_on_febio_truth(slice_work, tmp_path):
+    """A hidden physical effect on FEBio truth: the torso subject drawn again with its left
+    breast 0.7x and its right 1.4x the modulus (the family's ``asymmetric`` truth physics),
+    fitted with one modulus from its truth labels: the diagnosis names the asymmetry, the
+    right breast the stiffer."""
+    from breastmodel.pipeline.run import run_subject
+    from breastmodel.validation import suite_config
+    from imaging.subject import read_subject
+
+    febio = _febio()
+    cache = Path(os.environ.get("BREASTMODEL_TRUTH_CACHE") or slice_work / "truth_cache")
+    make = family_maker(size="small", febio=febio, cache=cache, physics="asymmetric")
+    subject, truth, _ = make("small-003", slice_work / "asymmetric" / "small-003")
+    sub = read_subject(subject)
+    run_dir = tmp_path / "run"
+    run_subject(subject, suite_config("truth_labels", truth, list(sub.positions),
+                                      sub.reference), run_dir, progress=False)
+    answer, first, d = _answer(run_dir, tmp_path / "evaluations")
+    print(f"regions:asymmetry: {answer} {first.get('estimate')}; {d['verdict']}")
+    assert answer == "regions:asymmetry", d["verdict"]
+    est = first["estimate"]
+    assert est["effects.regions.E_right"] > 1.3 * est["effects.regions.E_left"]
