@@ -14,10 +14,15 @@ Rows per subject (the reference's label map the mesh is built from):
   breast tissue (the *spill*) set to muscle;
 - ``truth + skin spill`` / ``truth + fat spill``: the spill's voxels whose phantom tissue is
   skin / the others (fat, gland);
-- ``pipeline - spill``: the pipeline's segmentation with the spill given back to the breast.
+- ``pipeline - spill``: the pipeline's segmentation with the spill given back to the breast;
+- ``truth + outline``: the truth with the pipeline's body outline (every voxel that is air in
+  one of the two and tissue in the other takes the pipeline's label), and split:
+  ``truth + muscle outline`` (those where either says muscle: the muscle's back and front
+  where it meets air) and ``truth + breast outline`` (the others: the skin over the breast).
 
-Also prints the spill's size and the mean offset of the pipeline's breast-muscle interface
-from the truth's (face centres, mm, positive into the breast). Writes ``--json``.
+Prints the fitted modulus of each row (and its change from the ``truth`` row), the spill's
+size and the mean offset of the pipeline's breast-muscle interface from the truth's (face
+centres, mm, positive into the breast). Writes ``--json``.
 """
 
 from __future__ import annotations
@@ -81,6 +86,13 @@ def variants(truth: np.ndarray, own: np.ndarray, tissue: np.ndarray) -> dict[str
     a = own.copy()
     a[spill] = 1
     out["pipeline - spill"] = a
+    outline = (truth == 0) != (own == 0)
+    by_muscle = outline & ((truth == 2) | (own == 2))
+    for name, part in [("truth + outline", outline), ("truth + muscle outline", by_muscle),
+                       ("truth + breast outline", outline & ~by_muscle)]:
+        a = truth.copy()
+        a[part] = own[part]
+        out[name] = a
     return out
 
 
@@ -140,14 +152,17 @@ def main(argv=None) -> int:
     os.environ.setdefault("OMP_NUM_THREADS", "2")
     out = args.out or args.work / "ablation"
     results = [ablate(args.work, n, out) for n in args.subjects.split(",")]
-    rows = list(results[0]["rows"])
-    print("| subject | spill voxels (skin) | interface offset mm | truth E | "
-          + " | ".join(rows) + " |")
-    print("|" + "---|" * (4 + len(rows)))
-    for r in results:
-        print(f"| {r['subject']} | {r['spill_voxels']} ({r['skin_spill_voxels']}) | "
-              f"{r['interface_offset_mm']:+.2f} | {r['truth_E']} | "
-              + " | ".join(f"{r['rows'][k]:.3f}" for k in rows) + " |")
+    print("| reference label map | " + " | ".join(r["subject"] for r in results) + " |")
+    print("|---|" + "---|" * len(results))
+    print("| spill voxels (skin) | " + " | ".join(
+        f"{r['spill_voxels']} ({r['skin_spill_voxels']})" for r in results) + " |")
+    print("| interface offset mm | " + " | ".join(
+        f"{r['interface_offset_mm']:+.2f}" for r in results) + " |")
+    print("| truth E kPa | " + " | ".join(f"{r['truth_E']}" for r in results) + " |")
+    for row in results[0]["rows"]:
+        cells = [f"{r['rows'][row]:.3f} ({100 * (r['rows'][row] / r['rows']['truth'] - 1):+.1f} %)"
+                 for r in results]
+        print(f"| fit with {row} | " + " | ".join(cells) + " |")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     from breastmodel.config import write_json
 
