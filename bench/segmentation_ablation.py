@@ -50,27 +50,35 @@ def _read(path: Path):
     return img, sitk.GetArrayFromImage(img)
 
 
-def _interface_offset_mm(truth: np.ndarray, own: np.ndarray, spacing_zyx) -> float:
-    """Mean signed distance of the pipeline's breast-muscle faces from the truth muscle's
-    boundary (mm; positive: outside the truth muscle, into the breast)."""
-    from scipy import ndimage
-
-    sp = np.asarray(spacing_zyx, float)
-    muscle = truth == 2
-    sdf = np.where(muscle, -ndimage.distance_transform_edt(muscle, sampling=sp) + 0.5 * sp.min(),
-                   ndimage.distance_transform_edt(~muscle, sampling=sp) - 0.5 * sp.min())
+def _interface_faces(labels: np.ndarray) -> np.ndarray:
+    """Centres of the faces between muscle and breast tissue voxels, (N, 3) in index units."""
     pts = []
     for ax in range(3):
         lo = [slice(None)] * 3
         hi = [slice(None)] * 3
         lo[ax], hi[ax] = slice(0, -1), slice(1, None)
-        a, b = own[tuple(lo)], own[tuple(hi)]
+        a, b = labels[tuple(lo)], labels[tuple(hi)]
         idx = np.argwhere(((a == 2) & np.isin(b, (1, 3))) | ((b == 2) & np.isin(a, (1, 3))))
         idx = idx.astype(float)
         idx[:, ax] += 0.5
         pts.append(idx)
-    faces = np.vstack(pts)
-    return float(ndimage.map_coordinates(sdf, faces.T, order=1).mean()) if len(faces) else 0.0
+    return np.vstack(pts)
+
+
+def _interface_offset_mm(truth: np.ndarray, own: np.ndarray, spacing_zyx) -> float:
+    """Mean signed distance of the pipeline's breast-muscle faces from the truth muscle's
+    boundary (mm; positive: outside the truth muscle, into the breast), less that of the
+    truth's own faces (the distance map's bias on the voxel grid)."""
+    from scipy import ndimage
+
+    sp = np.asarray(spacing_zyx, float)
+    muscle = truth == 2
+    half = 0.5 * sp.min()  # voxel centres half a voxel from the boundary
+    sdf = np.where(muscle, half - ndimage.distance_transform_edt(muscle, sampling=sp),
+                   ndimage.distance_transform_edt(~muscle, sampling=sp) - half)
+    mean = [float(ndimage.map_coordinates(sdf, f.T, order=1).mean()) if len(f) else 0.0
+            for f in (_interface_faces(own), _interface_faces(truth))]
+    return mean[0] - mean[1]
 
 
 def variants(truth: np.ndarray, own: np.ndarray, tissue: np.ndarray) -> dict[str, np.ndarray]:
