@@ -19,15 +19,16 @@ from breastmodel.pipeline.segment import PREPROCESS_KEYS, SEGMENT_KEYS
 from mechanics.solver import SolverOptions
 
 __all__ = [
-    "DEFAULTS", "FIT_PARAMETER_KEYS", "check_model", "get_param", "given_labels",
-    "load_run_config",
-    "materials_by_code", "resolve_config", "set_params",
+    "DEFAULTS", "FIT_PARAMETER_KEYS", "GIVEN_LABEL_KEYS", "check_model", "get_param",
+    "given_labels", "load_run_config", "materials_by_code", "resolve_config", "set_params",
 ]
 
 # the stages' own keys, so that run.toml and the stage commands accept the same tables: a
 # run takes its positions from the subject and may give label maps instead (corrected ones,
 # or a phantom's truth), for every position or for those in ``labels_positions``
-_SEGMENT_KEYS = (SEGMENT_KEYS - {"positions"}) | {"labels", "labels_positions"}
+#: the run's own [segment] keys: label maps given instead of segmenting
+GIVEN_LABEL_KEYS = ("labels", "labels_positions")
+_SEGMENT_KEYS = (SEGMENT_KEYS - {"positions"}) | set(GIVEN_LABEL_KEYS)
 _PREPROCESS_KEYS = PREPROCESS_KEYS
 _REGISTER_KEYS = REGISTER_KEYS
 #: every option of the solver (:class:`mechanics.solver.SolverOptions`), by its field names

@@ -32,18 +32,14 @@ def segment_stage(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[P
     def fn(d: Path) -> None:
         import SimpleITK as sitk
 
-        from breastmodel.pipeline.config import given_labels
+        from breastmodel.pipeline.config import GIVEN_LABEL_KEYS, given_labels
         from breastmodel.pipeline.segment import segment_position
         from imaging.io import read_volume, write_volume
 
         vol = subject.positions[position].volume_path
-        src = given_labels(cfg["segment"], position)
-        seg = {k: v for k, v in cfg["segment"].items()
-               if k not in ("labels", "labels_positions")}
+        src = given_labels(cfg["segment"], position)  # its file checked before the stages
+        seg = {k: v for k, v in cfg["segment"].items() if k not in GIVEN_LABEL_KEYS}
         if src is not None:
-            if not src.is_file():
-                raise StageError("segment", f"[segment] labels = {str(src.parent)!r} has no "
-                                 f"label map for position {position!r}", src)
             labels = read_volume(src)
             write_volume(labels, d / f"{position}_labels.nii.gz")
         else:
