@@ -183,9 +183,10 @@ class _FrictionAnchors:
 
     def _friction_terms(self, X, x, dgf, dofN, fN, w, on):
         """The friction part of :meth:`Sliding.contribute`: the anchors' dofs ``dofT`` (P, L),
-        the friction force on them ``fT`` (P, L) mN, and the tangent blocks as (rows, cols,
-        K) triplets: the friction law along the slip, and where the bound follows the normal
-        force, its coupling to the normal dofs ``dofN`` (``dgf``: the gap's gradient)."""
+        the friction force on them ``fT`` (P, L) mN, and the tangent blocks as (points, rows,
+        cols, K): the friction law along the slip (all points), and where the bound follows
+        the normal force, its coupling to the normal dofs ``dofN`` (``dgf``: the gap's
+        gradient; the points as an index array)."""
         eps = self.values["penalty"]
         if self.anchor_facet is None:  # contribute() before any begin_step
             self._set_anchors(x, self.contact_points(x))
@@ -203,11 +204,12 @@ class _FrictionAnchors:
         force_t = phi[:, None] * sh
         ss = np.einsum("si,sj->sij", sh, sh)
         Dt = phi_r[:, None, None] * ss + phi_over_r[:, None, None] * (np.eye(3) - ss)
-        blocks = [(dofT, dofT, B.transpose(0, 2, 1) @ (Dt @ dtt))]
-        comp = (bound_f != 0.0) & (phi_b != 0.0)
-        if np.any(comp):
+        blocks = [(slice(None), dofT, dofT, B.transpose(0, 2, 1) @ (Dt @ dtt))]
+        comp = np.flatnonzero((bound_f != 0.0) & (phi_b != 0.0))
+        if len(comp):
             db = (bound_f * eps * w)[:, None] * dgf  # d bound / dq on the normal dofs
             dt_n = phi_b[:, None, None] * np.einsum("si,sj->sij", sh, db)
-            blocks.append((dofT[comp], dofN[comp], B[comp].transpose(0, 2, 1) @ dt_n[comp]))
+            blocks.append((comp, dofT[comp], dofN[comp],
+                           B[comp].transpose(0, 2, 1) @ dt_n[comp]))
         fT = np.einsum("sij,si->sj", B, force_t)  # (P, L) on the anchor's local dofs
         return dofT, fT, blocks

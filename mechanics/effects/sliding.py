@@ -318,10 +318,16 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
         rows, cols, Ks = [dofN], [dofN], [K]
         if self.values["friction"] > 0.0:
             dofT, fT, blocks = self._friction_terms(X, x, dgf, dofN, fN, w, on)
-            for r, c, k in blocks:
-                rows.append(r)
-                cols.append(c)
-                Ks.append(k)
+            # a point still on its anchor's triangle has its friction blocks on the dofs of
+            # its normal block: added to it, not scattered as blocks of their own (20k-tet
+            # phantom, supine: 7.7k blocks of 18 x 18 -> 4k)
+            same = np.all(dofT == dofN, axis=1)
+            for pts, r, c, k in blocks:
+                on_n = same[pts]
+                K[np.arange(len(same))[pts][on_n]] += k[on_n]
+                rows.append(r[~on_n])
+                cols.append(c[~on_n])
+                Ks.append(k[~on_n])
             force = np.bincount(np.concatenate([dofN.ravel(), dofT.ravel()]),
                                 weights=np.concatenate([fq.ravel(), fT.ravel()]),
                                 minlength=3 * n)
