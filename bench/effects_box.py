@@ -144,6 +144,8 @@ def main() -> int:
     ap.add_argument("--first-inversion-shrink", type=float,
                     default=SolverOptions.first_inversion_shrink,
                     help="SolverOptions.first_inversion_shrink (0: off)")
+    ap.add_argument("--initial-steps", type=int, default=SolverOptions.initial_steps,
+                    help="SolverOptions.initial_steps (the pipeline's run.toml: 2)")
     add_mesh_arguments(ap, phantom_size=8.0)
     ap.add_argument("--suite-mesh", default=None,
                     help="comma-separated Mesh .npz files made by the pipeline's meshing stage "
@@ -159,7 +161,8 @@ def main() -> int:
     changes = json.loads(args.changes)
     options = SolverOptions(max_newton=args.max_newton, max_cutbacks=args.max_cutbacks,
                             stagnate_after=args.stagnate_after, predictor=args.predictor,
-                            first_inversion_shrink=args.first_inversion_shrink)
+                            first_inversion_shrink=args.first_inversion_shrink,
+                            initial_steps=args.initial_steps)
     if args.suite_mesh:
         meshes = [(Path(p).stem, *suite_mesh(p)) for p in args.suite_mesh.split(",")]
     else:
@@ -174,7 +177,8 @@ def main() -> int:
                    "stagnate_after": args.stagnate_after,
                    "singular_shift": SolverOptions.singular_shift,
                    "predictor": args.predictor,
-                   "first_inversion_shrink": args.first_inversion_shrink},
+                   "first_inversion_shrink": args.first_inversion_shrink,
+                   "initial_steps": args.initial_steps},
         "points": [],
     }
     out = Path(args.out)
