@@ -153,6 +153,26 @@ def test_sliding_tangent(split, friction, shift, points, smoothing):
     assert _fd_check(eff, X, x2, dofs) < TOL
 
 
+def test_sliding_tangent_with_points_off_their_anchor_triangle(split):
+    """A shear that carries some contact points onto other muscle triangles than their
+    friction anchors': their friction blocks sit on other dofs than their normal blocks
+    (scattered on their own), the others' are added to the normal blocks; both in one
+    tangent, which must still be the residual's derivative."""
+    rng = np.random.default_rng(5)
+    eff = EFFECTS["sliding"](split, friction=0.1, penalty=50.0, tangential_penalty=20.0)
+    X, x, breast = _contact_state(split, rng)
+    eff.begin_step(X, x)
+    x2 = x.copy()
+    # a shear ramp of 0 to 10 mm along x (the muscle triangles' edges are about 32 mm)
+    x2[breast, 0] += 10.0 * (X[breast, 0] - X[breast, 0].min()) / np.ptp(X[breast, 0])
+    paired = eff._normal(X, x2, hessian=False)[0][:, 3:]  # the muscle triangles' nodes
+    anchored = eff.master[eff.anchor_facet]
+    moved = np.any(paired != anchored, axis=1)
+    assert moved.any() and not moved.all()
+    dofs = _active_dofs(np.concatenate([eff.slaves, np.unique(eff.master)]), rng, 24)
+    assert _fd_check(eff, X, x2, dofs) < TOL
+
+
 @pytest.mark.parametrize("smoothing", [0.0, 0.2])
 def test_sliding_tangent_smooth_bound_across_zero_pressure(split, smoothing):
     """Regularised friction bound (pressure_smoothing): the normal gap changes sign along x,
