@@ -186,7 +186,7 @@ class _FrictionAnchors:
         the friction force on them ``fT`` (P, L) mN, and the tangent blocks as (points, rows,
         cols, K): the friction law along the slip (all points), and where the bound follows
         the normal force, its coupling to the normal dofs ``dofN`` (``dgf``: the gap's
-        gradient; the points as an index array)."""
+        gradient); the points as index arrays."""
         eps = self.values["penalty"]
         if self.anchor_facet is None:  # contribute() before any begin_step
             self._set_anchors(x, self.contact_points(x))
@@ -204,7 +204,7 @@ class _FrictionAnchors:
         force_t = phi[:, None] * sh
         ss = np.einsum("si,sj->sij", sh, sh)
         Dt = phi_r[:, None, None] * ss + phi_over_r[:, None, None] * (np.eye(3) - ss)
-        blocks = [(slice(None), dofT, dofT, B.transpose(0, 2, 1) @ (Dt @ dtt))]
+        blocks = [(np.arange(len(w)), dofT, dofT, B.transpose(0, 2, 1) @ (Dt @ dtt))]
         comp = np.flatnonzero((bound_f != 0.0) & (phi_b != 0.0))
         if len(comp):
             db = (bound_f * eps * w)[:, None] * dgf  # d bound / dq on the normal dofs

@@ -324,7 +324,7 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
             same = np.all(dofT == dofN, axis=1)
             for pts, r, c, k in blocks:
                 on_n = same[pts]
-                K[np.arange(len(same))[pts][on_n]] += k[on_n]
+                K[pts[on_n]] += k[on_n]
                 rows.append(r[~on_n])
                 cols.append(c[~on_n])
                 Ks.append(k[~on_n])
