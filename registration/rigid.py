@@ -91,7 +91,7 @@ def register_rigid(
     shrink: tuple[int, ...] = (4, 2, 1), smooth_mm: tuple[float, ...] = (2.0, 1.0, 0.0),
     iterations: int = 50, sampling: float = 0.1, learning_rate_mm: float = 0.5,
     fine_levels: int = 2, seed: int = DEFAULT_SEED, threads: int = 1,
-    fiducial_fallback: bool = True,
+    fiducial_fallback: bool = True, base_mask: sitk.Image | None = None,
 ) -> RigidResult:
     """Register ``moving`` onto ``fixed`` (the reference) rigidly, then check the result
     against the fiducial-only solution.
@@ -99,13 +99,11 @@ def register_rigid(
     Parameters
     ----------
     fixed, moving : SimpleITK.Image
-        Reference volume and the position's volume (preprocessed: bias-corrected,
-        normalised).
+        Reference and position volumes (preprocessed: bias-corrected, normalised).
     fixed_points, moving_points : mapping label -> (3,) mm, optional
         Fiducials of each volume in its own physical frame.
     fixed_mask : SimpleITK.Image, optional
-        Chest-wall mask on the reference grid (breasts masked out, see
-        :func:`chest_wall_mask`); only it drives the correlation.
+        Chest-wall mask on the reference grid (:func:`chest_wall_mask`): drives the fit.
     initial : SimpleITK.Transform, optional
         A start that replaces the fiducial initialisation (the fiducials still check it).
     max_residual_mm : float
@@ -115,8 +113,8 @@ def register_rigid(
         fiducial-only residual is within ``fiducial_error_mm`` (the others moved with the
         skin: a note names them). Where the chest wall leaves a direction loose (e.g. a
         torso's body axis, :func:`registration.directions.loose_directions`), a second
-        refinement over the mask and these balls sets it; every other direction stays the
-        chest wall's (:func:`_loose_from_markers`).
+        refinement over the mask and these balls (without them, over ``base_mask``) sets it;
+        every other direction stays the chest wall's (:func:`_loose_from_markers`).
     fiducial_error_mm : float
         Fiducial localisation error (FLE) assumed at least, mm, and at least half the
         diagonal of the coarser image's voxel; see :func:`check_registration`.
@@ -129,13 +127,15 @@ def register_rigid(
         refinement runs (its start is close; a coarse level's optimum pulls along loose ones).
     fiducial_fallback : bool
         When the refined transform fails a check by moving every marker alike, return the
-        fiducial-only solution (status ``"fiducials"``); see :func:`_checked`.
+        fiducial-only solution (status ``"fiducials"``, :func:`_checked`).
+    base_mask : SimpleITK.Image, optional
+        The wall and the breasts' base: sets loose directions without markers (see above).
 
     Returns
     -------
     RigidResult
-        ``status`` "ok" (the checks passed), "fiducials" or "flagged" (one failed: the
-        reasons are in ``warnings``), "unchecked" (no fiducials to check against).
+        ``status`` "ok" (checks passed), "fiducials" or "flagged" (one failed, see
+        ``warnings``), "unchecked" (no fiducials to check against).
     """
     _check_seed(seed)
     notes: list[str] = []
@@ -154,7 +154,7 @@ def register_rigid(
             fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
         tfm = _loose_from_markers(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
                                   balls=[fixed_points[k] for k in pinned],
-                                  radius_mm=marker_mask_mm)
+                                  radius_mm=marker_mask_mm, base=base_mask)
     chosen, checks, status = _checked(fixed, moving, tfm, fid, used, fixed_points,
                                       moving_points, notes, chest=fixed_mask,
                                       fiducial_error_mm=fiducial_error_mm,
@@ -265,20 +265,31 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
     return pinned
 
 
-def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm):
+def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm,
+                        base=None):
     """The chest-wall transform ``wall`` with its loose directions set by a refinement over
     the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
-    which and by how much); ``wall`` itself where the chest wall pins every direction, or
-    where no marker is there to set a loose one (a note says the registration is not
-    determined along it). Markers sit on skin, which the breasts pull along in a tilted
-    position (on the validation suite a coherent lateral shift of about 1 mm that leaves no
-    residual), so they may not drive the directions the wall pins."""
+    which and by how much); without markers, by a refinement over ``base`` (the wall and the
+    breast tissue at its base: gravity, across the body in every lying position, moves
+    that tissue little along the body axis, the direction a torso's wall leaves loose);
+    ``wall`` itself where the chest wall pins every direction, or where neither is there to
+    set a loose one (a note says the registration is not determined along it). Markers sit
+    on skin, which the breasts pull along in a tilted position (on the validation suite a
+    coherent lateral shift of about 1 mm that leaves no residual), so they may not drive the
+    directions the wall pins."""
     dirs = loose_directions(fixed, chest)
     if not dirs.loose.any():
         if balls:
             notes.append("the chest wall pins every rigid direction (weakest sharpness "
                          f"{dirs.ratios[0]:.3f}): the markers only check the registration")
         return wall
+    if not balls and base is not None:
+        with_base, _ = refine_rigid(fixed, moving, init, fixed_mask=base, **levels)
+        out, moved = blend_loose(wall, with_base, dirs)
+        notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose and "
+                     "no rigid marker sets it: set by the breasts' base (moved "
+                     f"{moved:.2f} mm); check it by eye or add fiducials on the sternum")
+        return out
     if not balls:
         notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose and "
                      "no rigid marker sets it: the registration is not determined along it "

@@ -24,6 +24,7 @@ Config (TOML, all optional)::
     learning_rate_mm = 0.5     # first step per unit of shrink factor
     fine_levels = 2            # levels of the masked refinement (the finest)
     mask_margin_mm = 6.0       # chest-wall mask: band behind the muscle, mm
+    base_margin_mm = 6.0       # breasts' base that sets loose directions without markers (0: off)
     marker_diameter_mm = 4.0
     fiducial_error_mm = 1.0    # smallest fiducial localisation error the checks assume
     fiducial_fallback = true   # a refined transform that failed by sliding: use the fiducials'

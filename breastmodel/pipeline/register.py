@@ -21,7 +21,11 @@ log = logging.getLogger("breastmodel.register")
 REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
                  "sampling", "learning_rate_mm", "fine_levels", "mask_margin_mm",
                  "marker_diameter_mm", "seed", "threads", "fiducial_error_mm",
-                 "require_fiducials", "fiducial_fallback"}
+                 "require_fiducials", "fiducial_fallback", "base_margin_mm"}
+#: Depth of the breast tissue in front of the chest wall that sets the directions the wall
+#: leaves loose (a torso's body axis) where no fiducial does, mm (``[register]
+#: base_margin_mm``; 0: none, those directions stay the wall's)
+BASE_MARGIN_MM = 6.0
 #: ``[register]`` keys passed to :func:`registration.rigid.register_rigid` as they are.
 _RIGID_KEYS = ("max_residual_mm", "marker_mask_mm", "iterations", "sampling",
                "learning_rate_mm", "fine_levels", "seed", "threads", "fiducial_error_mm",
@@ -111,7 +115,6 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     from imaging.fiducials import find_fiducials
     from imaging.io import write_volume
     from imaging.subject import Subject, read_subject
-    from registration.rigid import chest_wall_mask
 
     cfg = read_config(config)
     require = cfg.get("require_fiducials", False)
@@ -129,7 +132,7 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     images: dict = {}
     ref_raw, ref_img = _prepared(subject, ref, images)
     ref_labels = _labels_for(subject, ref, seg_dir, out)
-    mask = chest_wall_mask(ref_labels, margin_mm=float(cfg.get("mask_margin_mm", 6.0)))
+    mask, base = _masks(ref_labels, cfg)
     write_volume(ref_raw, out / "reference.nii.gz")
     write_volume(ref_labels, out / "reference_labels.nii.gz")
 
@@ -148,7 +151,7 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
             continue
         entry, res = _register_position(
             subject, name, images, out, ref_raw=ref_raw, ref_img=ref_img, ref_fid=ref_fid,
-            mask=mask, seg_dir=seg_dir, cfg=cfg, truth=truth, tre_points=tre_points)
+            mask=mask, base=base, seg_dir=seg_dir, cfg=cfg, truth=truth, tre_points=tre_points)
         gravity[name] = list(entry["gravity_reference"])
         report["positions"][name] = entry
         write_json(out / "registration.json", report)
@@ -158,6 +161,19 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     write_json(out / "gravity.json", gravity)
     write_json(out / "registration.json", report)
     return report
+
+
+def _masks(ref_labels, cfg: dict):
+    """The chest-wall mask that drives the registration, and the one with the breasts'
+    base that sets the directions the wall leaves loose where no marker does (None with
+    ``base_margin_mm = 0``)."""
+    from registration.rigid import chest_wall_mask
+
+    margin = float(cfg.get("mask_margin_mm", 6.0))
+    base_mm = float(cfg.get("base_margin_mm", BASE_MARGIN_MM))
+    base = (chest_wall_mask(ref_labels, margin_mm=margin, breast_margin_mm=base_mm)
+            if base_mm > 0 else None)
+    return chest_wall_mask(ref_labels, margin_mm=margin), base
 
 
 def _stop(name: str, res, report_path: Path) -> None:
@@ -205,7 +221,7 @@ def _truth_points(truth: Path, reference: str) -> np.ndarray:
         tuple(float(v) for v in i)) for i in idx])
 
 
-def _register_position(subject, name, images, out, *, ref_raw, ref_img, ref_fid, mask,
+def _register_position(subject, name, images, out, *, ref_raw, ref_img, ref_fid, mask, base,
                        seg_dir, cfg, truth, tre_points):
     """Register one position onto the reference and write its transform and its volume
     and labels resampled onto the reference grid. Returns (its report entry, the
@@ -226,7 +242,7 @@ def _register_position(subject, name, images, out, *, ref_raw, ref_img, ref_fid,
     fid = find_fiducials(img, listed=listed.get(name),
                          diameter_mm=float(cfg.get("marker_diameter_mm", 4.0)))
     res = register_rigid(ref_img, img, fixed_points=ref_fid, moving_points=fid,
-                         fixed_mask=mask, **_rigid_options(cfg))
+                         fixed_mask=mask, base_mask=base, **_rigid_options(cfg))
     write_atomic(out / f"{name}.tfm", transform_text(res.transform))
     write_volume(resample_to_reference(raw, ref_raw, res.transform),
                  out / f"{name}_in_reference.nii.gz")

@@ -127,3 +127,43 @@ def test_without_markers_a_loose_direction_is_named():
     res = register_rigid(fixed, moving, fixed_mask=mask, initial=start)
     assert res.status == "unchecked"
     assert any("not determined along it" in w and "translation (" in w for w in res.warnings)
+
+
+def test_without_markers_the_breasts_base_sets_the_loose_direction():
+    """No marker: the tissue in front of the wall (here a blob bounded along z, as a
+    breast's base is) sets the cylinder's axis, which the wall leaves at the start's."""
+    from registration.rigid import register_rigid
+
+    def torso(shift):
+        z, y, x = np.mgrid[0:50, -45:46, -60:61].astype(float)
+        xb, yb, zb = x - shift[0], y - shift[1], z - shift[2]
+        a = np.where((xb / 50) ** 2 + (yb / 35) ** 2 <= 1, 1.0, 0.0)
+        a[(xb / 36) ** 2 + ((yb - 4) / 22) ** 2 <= 1] = 0.85
+        a[(xb / 12) ** 2 + ((yb + 29) / 4) ** 2 + ((zb - 25) / 9) ** 2 <= 1] = 0.5
+        img = sitk.GetImageFromArray(a.astype(np.float32))
+        img.SetOrigin((-60.0, -45.0, 0.0))
+        return sitk.SmoothingRecursiveGaussian(img, 0.7)
+
+    truth = np.array([1.0, 0.0, 2.5])
+    fixed, moving = torso(np.zeros(3)), torso(truth)
+    z, y, x = np.mgrid[0:50, -45:46, -60:61].astype(float)
+    ring = np.abs(np.sqrt((x / 36) ** 2 + ((y - 4) / 22) ** 2) - 1.0) <= 0.15
+    ring[:6], ring[-6:] = False, False
+    base = ring | ((np.abs(x) <= 16) & (y >= -35) & (y <= -19) & (z >= 10) & (z <= 40))
+    masks = []
+    for m in (ring, base):
+        masks.append(sitk.GetImageFromArray(m.astype(np.uint8)))
+        masks[-1].CopyInformation(fixed)
+    start = sitk.Euler3DTransform()
+    start.SetTranslation((1.0, 0.0, 0.5))  # 2 mm short along the axis
+    centre = (0.0, 0.0, 25.0)
+    wall = register_rigid(fixed, moving, fixed_mask=masks[0], initial=start)
+    res = register_rigid(fixed, moving, fixed_mask=masks[0], initial=start,
+                         base_mask=masks[1])
+    along = [np.asarray(r.transform.TransformPoint(centre))[2] - centre[2]
+             for r in (wall, res)]
+    assert abs(along[0] - truth[2]) > 1.5  # the wall alone keeps the start's z
+    assert abs(along[1] - truth[2]) < 0.3
+    shift = np.asarray(res.transform.TransformPoint(centre)) - centre
+    np.testing.assert_allclose(shift[:2], truth[:2], atol=0.3)
+    assert any("set by the breasts' base" in w for w in res.warnings)
