@@ -3,6 +3,7 @@ the transform the stage uses, the correlation's (refined) and the markers' (fidu
 
     python bench/register_suite.py --work bench/validation_work           # seeds 0-11
     python bench/register_suite.py --size full --seeds 0 --arms truth_labels,pipeline
+    python bench/register_suite.py --seeds 7,10 --register '{"base_margin_mm": 0}'
 
 Subjects come from the phantom family as in ``bench/validate.py`` (their FEBio truth cached
 under ``--work``/truth_cache; the same ``--work`` reuses them). Arms: ``truth_labels`` (the
@@ -15,6 +16,7 @@ is measured. Prints a table and writes ``--json`` (default
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -47,15 +49,16 @@ def position_row(entry: dict, truth_tfm, points: np.ndarray) -> dict:
     return row
 
 
-def register_one(name: str, make, work: Path, arm: str) -> dict:
-    """Every position of subject ``name`` registered in ``arm``: {position: row}."""
+def register_one(name: str, make, work: Path, arm: str, config: dict | None = None) -> dict:
+    """Every position of subject ``name`` registered in ``arm`` (``config``: more
+    ``[register]`` keys): {position: row}."""
     from breastmodel.pipeline.register import _truth_points, register_subject, truth_transform
 
     subject, truth, _ = make(name, work / "subjects" / name)
     out = work / "register_suite" / arm / name
     rep = register_subject(subject, out, truth=truth,
                            seg_dir=truth if arm == "truth_labels" else None,
-                           config={"require_fiducials": False})
+                           config={"require_fiducials": False, **(config or {})})
     points = _truth_points(truth, rep["reference"])
     return {p: position_row(e, truth_transform(truth, rep["reference"], p), points)
             for p, e in rep["positions"].items()}
@@ -72,6 +75,8 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "validation_work")
     ap.add_argument("--arms", default="truth_labels")
     ap.add_argument("--febio", default=None)
+    ap.add_argument("--register", default="{}",
+                    help='JSON: more [register] keys, e.g. \'{"base_margin_mm": 0}\'')
     ap.add_argument("--json", type=Path,
                     default=ROOT / "bench" / "results" / "register_suite.json")
     args = ap.parse_args(argv)
@@ -90,7 +95,7 @@ def main(argv=None) -> int:
         name = f"{args.size}-{seed:03d}"
         for arm in args.arms.split(","):
             try:
-                got = register_one(name, make, args.work, arm)
+                got = register_one(name, make, args.work, arm, json.loads(args.register))
             except Exception as exc:  # noqa: BLE001  (a subject that fails is a row)
                 rows.append({"subject": name, "arm": arm, "error": f"{type(exc).__name__}: "
                              f"{exc}"[:200]})
@@ -102,7 +107,8 @@ def main(argv=None) -> int:
                       f"{_cell(r['used']):>12s} {_cell(r['refined']):>12s} "
                       f"{_cell(r['fiducials']):>12s}", flush=True)
     write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                           "size": args.size, "rows": rows})
+                           "size": args.size, "register": json.loads(args.register),
+                           "rows": rows})
     print(f"wrote {args.json}")
     return 0
 
