@@ -80,6 +80,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path,
                     default=ROOT / "bench" / "results" / "register_suite.json")
     args = ap.parse_args(argv)
+    extra = json.loads(args.register)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     os.environ.setdefault("OMP_NUM_THREADS", "2")
     from breastmodel.config import write_json
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
         name = f"{args.size}-{seed:03d}"
         for arm in args.arms.split(","):
             try:
-                got = register_one(name, make, args.work, arm, json.loads(args.register))
+                got = register_one(name, make, args.work, arm, extra)
             except Exception as exc:  # noqa: BLE001  (a subject that fails is a row)
                 rows.append({"subject": name, "arm": arm, "error": f"{type(exc).__name__}: "
                              f"{exc}"[:200]})
@@ -107,7 +108,7 @@ def main(argv=None) -> int:
                       f"{_cell(r['used']):>12s} {_cell(r['refined']):>12s} "
                       f"{_cell(r['fiducials']):>12s}", flush=True)
     write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                           "size": args.size, "register": json.loads(args.register),
+                           "size": args.size, "register": extra,
                            "rows": rows})
     print(f"wrote {args.json}")
     return 0

@@ -1,5 +1,6 @@
 """Masks that drive a rigid registration: what is rigid on a label map
-(:func:`chest_wall_mask`) and balls around the fiducials (:func:`add_balls`)."""
+(:func:`chest_wall_mask`, :func:`chest_wall_masks`) and balls around the fiducials
+(:func:`add_balls`)."""
 
 from __future__ import annotations
 
@@ -33,11 +34,20 @@ def add_balls(mask: sitk.Image, centres, radius_mm: float) -> sitk.Image:
 def chest_wall_mask(
     labels: sitk.Image, *, margin_mm: float = 6.0, breast_margin_mm: float = 0.0
 ) -> sitk.Image:
-    """Mask (uint8) of what is rigid on a label map: the chest wall, breasts masked out.
+    """Mask (uint8) of what is rigid on a label map: the chest wall, breasts masked out
+    (:func:`chest_wall_masks` with one ``breast_margin_mm``)."""
+    return chest_wall_masks(labels, margin_mm=margin_mm, breast_margins_mm=(breast_margin_mm,))[0]
+
+
+def chest_wall_masks(
+    labels: sitk.Image, *, margin_mm: float = 6.0, breast_margins_mm: tuple[float, ...] = (0.0,)
+) -> list[sitk.Image]:
+    """Masks (uint8) of what is rigid on a label map, one per breast margin, from one
+    distance map: the chest wall, breasts masked out.
 
     The muscle (label 2), the band within ``margin_mm`` of it on the side away from the
     breasts (thorax interior, or the air behind a muscle slab), and only the breast tissue
-    (1, 3) within ``breast_margin_mm`` in front of it. The breasts deform between positions
+    (1, 3) within a breast margin in front of it. The breasts deform between positions
     and the space in front of the muscle (air between the breasts, subcutaneous fat) is where
     they swing, so neither may drive a rigid fit.
 
@@ -45,13 +55,15 @@ def chest_wall_mask(
     ----------
     labels : SimpleITK.Image
         Reference label map (0 background, 1 breast, 2 muscle, 3 gland).
-    margin_mm, breast_margin_mm : float
-        Widths of the band behind the muscle and of the tissue layer in front of it, mm.
+    margin_mm : float
+        Width of the band behind the muscle, mm.
+    breast_margins_mm : tuple of float
+        Depths of the breast tissue layer in front of the muscle kept, mm, one per mask.
 
     Returns
     -------
-    SimpleITK.Image
-        uint8 0/1 on the label map's grid.
+    list of SimpleITK.Image
+        uint8 0/1 on the label map's grid, in the order of ``breast_margins_mm``.
     """
     lab = sitk.Cast(labels, sitk.sitkUInt8)
     muscle = lab == 2
@@ -83,7 +95,9 @@ def chest_wall_mask(
         for i in range(3):
             facing += toward[i] * np.gradient(d, spz[i], axis=i).astype(np.float32)
         front &= facing > -0.5  # not clearly facing away from the breasts
-    keep = (a == 2) | (band & ~front) | (breast & (d <= breast_margin_mm))
-    out = sitk.GetImageFromArray(keep.astype(np.uint8))
-    out.CopyInformation(lab)
+    rigid = (a == 2) | (band & ~front)
+    out = []
+    for depth in breast_margins_mm:
+        out.append(sitk.GetImageFromArray((rigid | (breast & (d <= depth))).astype(np.uint8)))
+        out[-1].CopyInformation(lab)
     return out

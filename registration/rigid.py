@@ -114,7 +114,7 @@ def register_rigid(
         skin: a note names them). Where the chest wall leaves a direction loose (e.g. a
         torso's body axis, :func:`registration.directions.loose_directions`), a second
         refinement over the mask and these balls (without them, over ``base_mask``) sets it;
-        every other direction stays the chest wall's (:func:`_loose_from_markers`).
+        every other direction stays the chest wall's (:func:`_set_loose`).
     fiducial_error_mm : float
         Fiducial localisation error (FLE) assumed at least, mm, and at least half the
         diagonal of the coarser image's voxel; see :func:`check_registration`.
@@ -152,7 +152,7 @@ def register_rigid(
     if fixed_mask is not None:
         pinned = [] if fid is None or marker_mask_mm <= 0 else _rigid_markers(
             fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
-        tfm = _loose_from_markers(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
+        tfm = _set_loose(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
                                   balls=[fixed_points[k] for k in pinned],
                                   radius_mm=marker_mask_mm, base=base_mask)
     chosen, checks, status = _checked(fixed, moving, tfm, fid, used, fixed_points,
@@ -265,8 +265,8 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
     return pinned
 
 
-def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm,
-                        base=None):
+def _set_loose(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm,
+               base=None):
     """The chest-wall transform ``wall`` with its loose directions set by a refinement over
     the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
     which and by how much); without markers, by a refinement over ``base`` (the wall and the
@@ -283,23 +283,18 @@ def _loose_from_markers(fixed, moving, init, wall, chest, notes, *, levels, ball
             notes.append("the chest wall pins every rigid direction (weakest sharpness "
                          f"{dirs.ratios[0]:.3f}): the markers only check the registration")
         return wall
-    if not balls and base is not None:
-        with_base, _ = refine_rigid(fixed, moving, init, fixed_mask=base, **levels)
-        out, moved = blend_loose(wall, with_base, dirs)
-        notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose and "
-                     "no rigid marker sets it: set by the breasts' base (moved "
-                     f"{moved:.2f} mm); check it by eye or add fiducials on the sternum")
-        return out
-    if not balls:
+    if not balls and base is None:
         notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose and "
                      "no rigid marker sets it: the registration is not determined along it "
                      "(add fiducials on the sternum or check it by eye)")
         return wall
-    with_balls, _ = refine_rigid(fixed, moving, init, fixed_mask=add_balls(chest, balls,
-                                                                           radius_mm), **levels)
-    out, moved = blend_loose(wall, with_balls, dirs)
-    notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose: set by "
-                 f"the markers' refinement (moved {moved:.2f} mm)")
+    second = add_balls(chest, balls, radius_mm) if balls else base
+    other, _ = refine_rigid(fixed, moving, init, fixed_mask=second, **levels)
+    out, moved = blend_loose(wall, other, dirs)
+    how = (f": set by the markers' refinement (moved {moved:.2f} mm)" if balls else
+           " and no rigid marker sets it: set by the breasts' base (moved "
+           f"{moved:.2f} mm); check it by eye or add fiducials on the sternum")
+    notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose" + how)
     return out
 
 

@@ -167,13 +167,12 @@ def _masks(ref_labels, cfg: dict):
     """The chest-wall mask that drives the registration, and the one with the breasts'
     base that sets the directions the wall leaves loose where no marker does (None with
     ``base_margin_mm = 0``)."""
-    from registration.rigid import chest_wall_mask
+    from registration.masks import chest_wall_masks
 
-    margin = float(cfg.get("mask_margin_mm", 6.0))
     base_mm = float(cfg.get("base_margin_mm", BASE_MARGIN_MM))
-    base = (chest_wall_mask(ref_labels, margin_mm=margin, breast_margin_mm=base_mm)
-            if base_mm > 0 else None)
-    return chest_wall_mask(ref_labels, margin_mm=margin), base
+    masks = chest_wall_masks(ref_labels, margin_mm=float(cfg.get("mask_margin_mm", 6.0)),
+                             breast_margins_mm=(0.0, base_mm) if base_mm > 0 else (0.0,))
+    return masks[0], (masks[1] if base_mm > 0 else None)
 
 
 def _stop(name: str, res, report_path: Path) -> None:
