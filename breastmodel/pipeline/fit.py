@@ -36,7 +36,11 @@ import numpy as np
 
 from breastmodel.pipeline.fit_evaluations import Evaluator as _Evaluator
 from breastmodel.pipeline.fit_jacobian import PENALTY_MM, Jacobian
-from breastmodel.pipeline.fit_statistics import identifiability, lsq_uncertainty
+from breastmodel.pipeline.fit_statistics import (
+    identifiability,
+    lsq_uncertainty,
+    offset_sensitivity,
+)
 
 log = logging.getLogger("breastmodel.pipeline")
 
@@ -189,8 +193,9 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
     skin node: a few parameters converge in a few tens of evaluations (forward-difference
     Jacobian with 5 % log steps, counted in ``budget``). The best evaluation by the objective
     (mean MHD) is returned, as for :func:`optimise` (often a Jacobian probe beside the
-    least-squares optimum, where the uncertainty is computed: on the suite's small-000
-    1.054 against 1.003 kPa, truth 0.94), with scipy's ``termination`` message or the
+    least-squares optimum, ``optimum``, where the uncertainty and the sensitivity to a skin
+    offset are computed: on the suite's small-000 1.054 against 1.003 kPa, truth 0.94), with
+    scipy's ``termination`` message or the
     stopping rule that ended it (:class:`~breastmodel.pipeline.fit_jacobian.Jacobian`: a
     step below the parameters' uncertainty, or below 1 %); evaluations are stored in
     ``work_dir/least_squares`` and replayed on resume; ``warm`` as for :func:`optimise`.
@@ -228,21 +233,37 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
     z0 = (np.log([x0[n] for n in names]) if x0 else 0.5 * (lo + hi)).astype(float)
     w0 = np.clip(z0, lo + 1e-9, hi - 1e-9) - shift
     jac = Jacobian(fun, shift, lo, hi, w0)
-    stop, uncertainty = "budget spent", {}
+    stop, uncertainty, offset, optimum = "budget spent", {}, {}, None
     try:
         sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo - shift, hi - shift), method="trf",
                         x_scale=1.0, xtol=1e-4, ftol=1e-4, max_nfev=budget,
                         callback=jac.settled)
         stop = jac.stop or str(sol.message)
-        uncertainty = lsq_uncertainty(sol.jac, sol.fun, np.exp(sol.x + shift), names)
+        p_opt = np.exp(sol.x + shift)
+        optimum = dict(zip(names, p_opt.tolist()))
+        uncertainty = lsq_uncertainty(sol.jac, sol.fun, p_opt, names)
         ident = identifiability(sol.jac, names)
+        offset = _offset_sensitivity(ev, sol, p_opt, names, calibrate, shift, lo, hi)
     except _BudgetSpent:
         ident = None
     except _StartFailed as exc:  # _summary below names the error (every evaluation failed)
         stop, ident = f"the starting point failed: {exc}", None
     res = _held_out(_summary(ev.history, "least_squares"), problem_dir, settings, work_dir,
                     warm)
-    return {**res, "termination": stop, "uncertainty": uncertainty, "identifiability": ident}
+    return {**res, "termination": stop, "uncertainty": uncertainty, "identifiability": ident,
+            "optimum": optimum, "skin_offset_sensitivity": offset}
+
+
+def _offset_sensitivity(ev, sol, p_opt, names, calibrate, shift, lo, hi) -> dict:
+    """:func:`offset_sensitivity` at the least squares' optimum, from the residuals' offset
+    derivative its evaluation stored (empty for a record stored before it was)."""
+    z = np.clip(np.asarray(sol.x, float) + shift, lo, hi)
+    rec = ev.stored(dict(zip(names, np.exp(z).tolist()))) or {}
+    slopes = rec.get("residual_offset") or {}
+    if not all(p in slopes for p in calibrate):
+        return {}
+    g = np.concatenate([np.asarray(slopes[p], float) for p in calibrate])
+    return offset_sensitivity(sol.jac, g, p_opt, names)
 
 
 def _summary(history: list[dict], method: str) -> dict:

@@ -41,6 +41,12 @@ class Evaluator:
         self.progress = progress
         self.n_new = 0
 
+    def stored(self, params: Mapping[str, float]) -> dict | None:
+        """The record this evaluator already has for ``params`` (None: not evaluated)."""
+        from breastmodel.sweep import point_key
+
+        return self.seen.get(point_key({k: float(f"{v:.6g}") for k, v in params.items()}))
+
     def __call__(self, params: Mapping[str, float]) -> dict:
         from breastmodel.config import write_json
         from breastmodel.sweep import point_key

@@ -26,6 +26,7 @@ import numpy as np
 from breastmodel.pipeline.config import materials_by_code, set_params
 from breastmodel.pipeline.scoring import (
     RIM_FADE_MM,
+    fit_residual,
     landmark_barycentric,
     predicted_landmarks,
     score_position,
@@ -274,8 +275,8 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
     settings : ``{"model", "solver", "stress_free"}`` tables of the resolved config and
         ``"calibrate"`` (position names), optionally ``"evaluate"`` (also scored, not in
         the objective) and ``"sees"`` (``pipeline.config.FIT_SEES``; default ``["skin"]``)
-    residuals : also return ``residual`` {calibration position: the least-squares fit's
-        vector, see :func:`_residual`}
+    residuals : also return ``residual`` and ``residual_offset`` {calibration position: the
+        fit's vector, and its change per mm the measured skin moves outward}
     start : (N, 3) stress-free geometry of a nearby parameter vector, mm: the stress-free
         inverse starts from it (a fit's warm start; None: from the reference geometry)
     keep_X : also return ``X``, the stress-free geometry (once it is found), and ``u``
@@ -301,7 +302,7 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
     sees = list(settings.get("sees") or ["skin"])
     out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "landmarks_mm": {},
                            "forward_solves": 0, "error": None,
-                           **({"residual": {}} if residuals else {})}
+                           **({"residual": {}, "residual_offset": {}} if residuals else {})}
     if start is not None and len(start) != model_mesh(problem, model).n_nodes:
         start = None  # another mesh (an effect that splits the interface): no warm start
     u_start = dict(u_start or {}) if start is not None else {}
@@ -329,7 +330,7 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
             if lm is not None:
                 out["landmarks_mm"][pos] = float(np.linalg.norm(lm[1] - lm[2], axis=1).mean())
             if residuals and pos in calibrate:
-                out["residual"][pos] = _residual(problem, state.x, pos, sees, lm).tolist()
+                _store_residual(out, problem, state.x, pos, sees, lm)
         out["objective"] = float(np.mean(
             [out["mhd_mm"][p] for p in calibrate if "skin" in sees]
             + [out["landmarks_mm"][p] for p in calibrate if p in out["landmarks_mm"]]))
@@ -356,21 +357,13 @@ def sweep_point(point: Mapping[str, float], *, problem_dir: str,
     return evaluate_params(point, problem_dir, settings)
 
 
-def _residual(problem: Problem, x: np.ndarray, position: str, sees: Sequence[str],
-              lm) -> np.ndarray:
-    """What the least-squares fit minimises at one position: the skin nodes' signed
-    distances to the measured skin (mm), faded to 0 where the closest point nears the
-    measured skin's rim (see :data:`RIM_FADE_MM`), and/or the landmarks' error components
-    (mm). With both, each part is divided by the square root of its length, so that each
-    weighs as its mean square."""
-    parts = []
-    if "skin" in sees:
-        parts.append(skin_residual(x[skin_nodes(problem, len(x))], *problem.skins[position]))
-    if lm is not None:
-        parts.append((lm[1] - lm[2]).ravel())
-    if len(parts) > 1:
-        parts = [p / math.sqrt(len(p)) for p in parts]
-    return np.concatenate(parts) if parts else np.zeros(0)
+def _store_residual(out: dict, problem: Problem, x: np.ndarray, position: str,
+                    sees: Sequence[str], lm) -> None:
+    """Put the least squares' residual of one position and its change per mm the measured
+    skin moves outward (:func:`~breastmodel.pipeline.scoring.fit_residual` of the skin
+    nodes) in ``out["residual"]`` and ``out["residual_offset"]``."""
+    r, g = fit_residual(x[skin_nodes(problem, len(x))], problem.skins[position], lm, sees)
+    out["residual"][position], out["residual_offset"][position] = r.tolist(), g.tolist()
 
 
 def fit_settings(cfg: Mapping[str, Any], positions: Sequence[str], reference: str) -> dict:

@@ -21,6 +21,7 @@ from breastmodel.pipeline.report_figures import (
     registration_figure,
     segmentation_figure,
 )
+from breastmodel.pipeline.report_fit import identifiability_notes, offset_notes
 from breastmodel.pipeline.screenshot import find_chromium, screenshot
 
 __all__ = ["common_error_limit", "find_chromium", "parameter_units", "screenshot", "write_report"]
@@ -146,23 +147,6 @@ def _refinement_section(ref: Mapping[str, Any] | None) -> list[str]:
             _table(["position", f"MHD at {h:g} mm", f"MHD at {hf:g} mm", "change (mm)"],
                    [[p, r["mhd_mm"], r["fine_mhd_mm"], r["change_mm"]]
                     for p, r in ref["positions"].items()])]
-
-
-def _identifiability_notes(ident: dict | None) -> list[str]:
-    """Sentences on what the data cannot determine (see ``pipeline.fit.identifiability``)."""
-    if not ident:
-        return []
-    notes = [f"The data do not separate {html.escape(a)} and {html.escape(b)} (correlation "
-             f"{r:+.2f}): their combination is fitted, not each one."
-             for a, b, r in ident.get("not_separable", [])]
-    notes += [f"The data hardly see {html.escape(k)}: its value is the starting point."
-              for k in ident.get("unseen", [])]
-    if ident.get("condition") is not None:
-        notes.append(f"Condition number of the fit's Jacobian: {ident['condition']:.3g}.")
-    if not ident.get("not_separable") and not ident.get("unseen"):
-        notes.insert(0, "Every fitted parameter is determined by the data (no pair of "
-                        "estimates correlated beyond 0.95).")
-    return [f"<p class='ident'>{n}</p>" for n in notes]
 
 
 def _repair_rows(mesh: Mapping[str, Any]) -> list[list]:
@@ -292,7 +276,11 @@ def _parameter_section(params: Mapping[str, Any], fit_info: Mapping[str, Any] | 
     parts = ["<h2 id='parameters'>Parameters</h2>",
              _table(["parameter", "value", "unit", "fitted or fixed", "search range",
                      "uncertainty (1 sd)"], prow)]
-    return parts + _identifiability_notes((fit_info or {}).get("identifiability"))
+    values = params.get("parameters", {})
+    units = {k: parameter_units(model, k) for k in values}
+    return parts + [f"<p class='ident'>{n}</p>" for n in (
+        offset_notes(values, units, (fit_info or {}).get("skin_offset_sensitivity"))
+        + identifiability_notes((fit_info or {}).get("identifiability")))]
 
 
 def _distance_sections(metrics: Mapping[str, Any]) -> list[str]:

@@ -313,7 +313,8 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
     if fit_info is not None:
         params["fit"] = {k: fit_info[k] for k in ("method", "best", "n_simulations",
                                                   "calibrate", "evaluate", "termination",
-                                                  "uncertainty", "identifiability", "sees")
+                                                  "uncertainty", "identifiability", "sees",
+                                                  "optimum", "skin_offset_sensitivity")
                          if k in fit_info}
     result = write_outputs(out, prob_dir, sf_dir, pred_dirs, params, fit_info,
                            subject_id=subject.id, register_dir=prep.register_dir,

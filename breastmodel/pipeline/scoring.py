@@ -11,8 +11,8 @@ import numpy as np
 if TYPE_CHECKING:
     from breastmodel.pipeline.problem import Problem
 
-__all__ = ["RIM_FADE_MM", "landmark_barycentric", "predicted_landmarks", "score_position",
-           "skin_node_regions", "skin_residual"]
+__all__ = ["RIM_FADE_MM", "fit_residual", "landmark_barycentric", "predicted_landmarks",
+           "score_position", "skin_node_regions", "skin_residual"]
 
 
 def skin_node_regions(mesh) -> np.ndarray:
@@ -127,11 +127,40 @@ def predicted_landmarks(problem: Problem, x: np.ndarray, position: str):
 RIM_FADE_MM = 5.0
 
 
-def skin_residual(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+def skin_residual(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, *,
+                  with_fade: bool = False):
     """The fit's skin residual of each point (mm): its signed distance to the measured skin
     (``vertices``, ``triangles``) times its closest point's distance to the skin's rim over
-    :data:`RIM_FADE_MM`, at most 1."""
+    :data:`RIM_FADE_MM`, at most 1 (that factor too with ``with_fade``: the residual's
+    change when the measured skin moves inward by 1 mm)."""
     from breastmodel.evaluation.distances import TriangleSurface, boundary_distance
 
     d, closest = TriangleSurface(vertices, triangles).distance(points, signed=True)
-    return d * np.clip(boundary_distance(vertices, triangles, closest) / RIM_FADE_MM, 0.0, 1.0)
+    fade = np.clip(boundary_distance(vertices, triangles, closest) / RIM_FADE_MM, 0.0, 1.0)
+    return (d * fade, fade) if with_fade else d * fade
+
+
+def fit_residual(skin_points: np.ndarray, measured: tuple, lm, sees) -> tuple[np.ndarray,
+                                                                           np.ndarray]:
+    """What the least-squares fit minimises at one position, and its change per mm the
+    measured skin moves outward along its normal (a segmentation bias).
+
+    The residual: the skin nodes' (``skin_points``) :func:`skin_residual` to the measured
+    skin (``measured``: vertices, triangles) and/or the landmarks' error components (``lm``:
+    names, predicted, measured; mm), as ``sees`` says. With both, each part is divided by
+    the square root of its length, so that each weighs as its mean square. The offset moves
+    each signed distance by -1 mm per mm (the fade too stays), the landmarks not at all.
+    """
+    parts, slopes = [], []
+    if "skin" in sees:
+        r, fade = skin_residual(skin_points, *measured, with_fade=True)
+        parts.append(r)
+        slopes.append(-fade)
+    if lm is not None:
+        parts.append((lm[1] - lm[2]).ravel())
+        slopes.append(np.zeros(parts[-1].size))
+    scale = [1.0 / np.sqrt(len(p)) if len(parts) > 1 else 1.0 for p in parts]
+    if not parts:
+        return np.zeros(0), np.zeros(0)
+    return (np.concatenate([p * c for p, c in zip(parts, scale)]),
+            np.concatenate([g * c for g, c in zip(slopes, scale)]))

@@ -283,7 +283,11 @@ def _cube_problem():
 
 
 def test_the_fit_sees_skin_landmarks_or_both():
-    from breastmodel.pipeline.problem import _residual, predicted_landmarks
+    from breastmodel.pipeline.problem import predicted_landmarks, skin_nodes
+    from breastmodel.pipeline.scoring import fit_residual
+
+    def _residual(problem, x, pos, sees, lm):
+        return fit_residual(x[skin_nodes(problem, len(x))], problem.skins[pos], lm, sees)[0]
 
     problem = _cube_problem()
     x = problem.mesh.nodes.copy()

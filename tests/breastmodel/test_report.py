@@ -46,6 +46,7 @@ def test_report_shows_fit_status_units_uncertainty_and_one_scale(tmp_path):
            "n_failed": 1, "best": {"params": {"materials.breast_left.E": 0.9},
                                    "objective": 1.25},
            "uncertainty": {"materials.breast_left.E": 0.0421},
+           "skin_offset_sensitivity": {"materials.breast_left.E": -0.027},
            "identifiability": {"not_separable": [["materials.breast_left.E", "effects.skin.E",
                                                   -0.97]], "unseen": [], "condition": 850.0}}
     config = {"fit": {"parameters": {"materials.breast_left.E": {"min": 0.1, "max": 4.0}}}}
@@ -68,5 +69,8 @@ def test_report_shows_fit_status_units_uncertainty_and_one_scale(tmp_path):
     assert rows["fit"] == ["least_squares", "xtol reached", "12 simulations, 1 failed"]
     assert ("The data do not separate materials.breast_left.E and effects.skin.E "
             "(correlation -0.97)") in html
+    # a segmentation bias: -0.027 kPa per mm on 0.9 kPa is -3 % per mm
+    assert ("A measured skin 1 mm outside the true one (a segmentation bias) would move "
+            "materials.breast_left.E by -3.0 % (-0.027 kPa)") in html
     lim = common_error_limit([p[2] for p in pictures.values()])
     assert f"&plusmn;{lim:.2f} mm" in html
