@@ -1,7 +1,9 @@
 """Does the fit's reported sensitivity to a segmentation bias hold? The measured skin of every
 position of a finished run's problem moved along its normal by a known offset, the fit redone
-(``breastmodel.pipeline.run.run_problem``), the fitted parameters' change set beside the
-change the unmoved fit predicted (``params.json`` > ``fit.skin_offset_sensitivity``, per mm).
+(``breastmodel.pipeline.run.run_problem``), the change of the least squares' optimum set
+beside the change the unmoved fit predicted (``params.json`` > ``fit.skin_offset_sensitivity``,
+per mm), and the change of the value the fit reports (its best evaluation by MHD, up to a
+Jacobian step from the optimum).
 
     python bench/validate.py --seeds 3 --arms truth_labels --work W   # makes W/runs/...
     python bench/skin_offset.py --runs W/runs/small-003/truth_labels --offsets=-1,1
@@ -71,10 +73,12 @@ def offset_row(run: Path, offsets: list[float], scratch: Path) -> dict:
             move_measured_skin(prob, p, lambda v, t, s=s: v + s * vertex_normals(v, t))
         fit = _fit(prob, cfg, scratch / f"offset_{s:g}")
         row["offsets"][f"{s:g}"] = {
-            k: {"fitted": fit["optimum"][k], "best": fit["best"]["params"][k],
-                "change_pct": 100.0 * (fit["optimum"][k] / p0[k] - 1.0),
-                "predicted_pct": (100.0 * s * sens[k] / p0[k]) if k in sens else None}
-            for k in p0}
+            "termination": fit.get("termination"), "n_simulations": fit.get("n_simulations"),
+            "params": {k: {"fitted": fit["optimum"][k], "best": fit["best"]["params"][k],
+                           "change_pct": 100.0 * (fit["optimum"][k] / p0[k] - 1.0),
+                           "predicted_pct": (100.0 * s * sens[k] / p0[k]) if k in sens
+                           else None} for k in p0}}
+    row["termination"], row["n_simulations"] = base.get("termination"), base.get("n_simulations")
     row["wall_s"] = round(time.perf_counter() - t0, 1)
     return row
 
@@ -86,22 +90,26 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "skin_offset.json")
     args = ap.parse_args(argv)
     offsets = [float(v) for v in args.offsets.split(",")]
+    from breastmodel.config import write_json
+
     rows = []
     for run in [Path(r) for r in args.runs.split(",")]:
         with tempfile.TemporaryDirectory(prefix="skin_offset_") as tmp:
             rows.append(offset_row(run, offsets, Path(tmp)))
-    print(f"{'run':45s} {'parameter':40s} {'fitted':>9s} {'offset':>7s} "
-          f"{'change %':>9s} {'predicted %':>12s}")
+        args.json.parent.mkdir(parents=True, exist_ok=True)  # after each run (atomic)
+        write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                               "rows": rows})
+    print(f"{'run':32s} {'parameter':24s} {'optimum':>8s} {'offset':>7s} {'change %':>9s} "
+          f"{'predicted %':>12s} {'best by MHD: change %':>22s}")
     for r in rows:
         for k, v in r["params"].items():
             for s, o in r["offsets"].items():
-                pred = o[k]["predicted_pct"]
-                print(f"{r['run'][-45:]:45s} {k[-40:]:40s} {v:9.4g} {s:>7s} "
-                      f"{o[k]['change_pct']:+9.2f} "
-                      f"{'-' if pred is None else format(pred, '+.2f'):>12s}")
-    args.json.parent.mkdir(parents=True, exist_ok=True)
-    args.json.write_text(json.dumps({"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                                     "rows": rows}, indent=1) + "\n")
+                q = o["params"][k]
+                pred = q["predicted_pct"]
+                best = 100.0 * (q["best"] / r["best"][k] - 1.0)
+                print(f"{r['run'][-32:]:32s} {k[-24:]:24s} {v:8.4g} {s:>7s} "
+                      f"{q['change_pct']:+9.2f} "
+                      f"{'-' if pred is None else format(pred, '+.2f'):>12s} {best:+22.2f}")
     print(f"wrote {args.json}")
     return 0
 
