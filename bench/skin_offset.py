@@ -30,12 +30,16 @@ if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
 
 
 def _problem_dir(run: Path) -> Path:
-    """The problem folder a finished run cached (``cache/problem/<key>``)."""
-    found = sorted((run / "cache" / "problem").glob("*/problem.json"))
-    if not found:
-        raise SystemExit(f"skin_offset: {run} holds no cached problem folder "
-                         "(cache/problem/<key>/problem.json); run the pipeline on it first")
-    return found[-1].parent
+    """The problem folder a finished run used: its ``stages.json``'s problem stage, in the
+    run's cache (``cache/problem/<key>``)."""
+    stages = json.loads((run / "stages.json").read_text()) if (run / "stages.json").is_file() \
+        else {}
+    keys = [s["key"] for s in stages.get("stages", []) if s.get("name") == "problem"]
+    cache = Path(stages.get("cache") or run / "cache")
+    if not keys or not (cache / "problem" / keys[-1] / "problem.json").is_file():
+        raise SystemExit(f"skin_offset: {run} is not a finished run with its problem folder "
+                         "in its cache (stages.json, cache/problem/<key>/problem.json)")
+    return cache / "problem" / keys[-1]
 
 
 def _fit(problem: Path, cfg: dict, out: Path) -> dict:
@@ -60,6 +64,9 @@ def offset_row(run: Path, offsets: list[float], scratch: Path) -> dict:
     src = _problem_dir(run)
     positions = list(json.loads((src / "problem.json").read_text())["gravity"])
     t0 = time.perf_counter()
+    if not cfg["fit"]["parameters"] or cfg["fit"]["method"] != "least_squares":
+        raise SystemExit(f"skin_offset: {run} has no least-squares fit ([fit] method "
+                         f"{cfg['fit']['method']!r}); the sensitivity comes with it only")
     base = _fit(src, cfg, scratch / "offset_0")
     # the least squares' optimum (where the sensitivity is computed), not the best
     # evaluation by MHD beside it (up to a Jacobian step, 5 %, away)
