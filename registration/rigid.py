@@ -153,8 +153,8 @@ def register_rigid(
         pinned = [] if fid is None or marker_mask_mm <= 0 else _rigid_markers(
             fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
         tfm = _set_loose(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
-                                  balls=[fixed_points[k] for k in pinned],
-                                  radius_mm=marker_mask_mm, base=base_mask)
+                         balls=[fixed_points[k] for k in pinned], radius_mm=marker_mask_mm,
+                         base=base_mask)
     chosen, checks, status = _checked(fixed, moving, tfm, fid, used, fixed_points,
                                       moving_points, notes, chest=fixed_mask,
                                       fiducial_error_mm=fiducial_error_mm,

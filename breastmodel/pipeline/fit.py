@@ -243,7 +243,7 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
         optimum = dict(zip(names, p_opt.tolist()))
         uncertainty = lsq_uncertainty(sol.jac, sol.fun, p_opt, names)
         ident = identifiability(sol.jac, names)
-        offset = _offset_sensitivity(ev, sol, p_opt, names, calibrate, shift, lo, hi)
+        offset = _offset_sensitivity(ev, sol.jac, p_opt, names, calibrate)
     except _BudgetSpent:
         ident = None
     except _StartFailed as exc:  # _summary below names the error (every evaluation failed)
@@ -254,16 +254,15 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
             "optimum": optimum, "skin_offset_sensitivity": offset}
 
 
-def _offset_sensitivity(ev, sol, p_opt, names, calibrate, shift, lo, hi) -> dict:
-    """:func:`offset_sensitivity` at the least squares' optimum, from the residuals' offset
-    derivative its evaluation stored (empty for a record stored before it was)."""
-    z = np.clip(np.asarray(sol.x, float) + shift, lo, hi)
-    rec = ev.stored(dict(zip(names, np.exp(z).tolist()))) or {}
-    slopes = rec.get("residual_offset") or {}
+def _offset_sensitivity(ev, J, p_opt, names, calibrate) -> dict:
+    """:func:`offset_sensitivity` at the least squares' optimum ``p_opt`` (Jacobian ``J``),
+    from the residuals' offset derivative its evaluation stored (empty for a record stored
+    before it was)."""
+    slopes = (ev.stored(dict(zip(names, p_opt.tolist()))) or {}).get("residual_offset") or {}
     if not all(p in slopes for p in calibrate):
         return {}
     g = np.concatenate([np.asarray(slopes[p], float) for p in calibrate])
-    return offset_sensitivity(sol.jac, g, p_opt, names)
+    return offset_sensitivity(J, g, p_opt, names)
 
 
 def _summary(history: list[dict], method: str) -> dict:

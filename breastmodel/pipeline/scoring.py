@@ -159,8 +159,8 @@ def fit_residual(skin_points: np.ndarray, measured: tuple, lm, sees) -> tuple[np
     if lm is not None:
         parts.append((lm[1] - lm[2]).ravel())
         slopes.append(np.zeros(parts[-1].size))
-    scale = [1.0 / np.sqrt(len(p)) if len(parts) > 1 else 1.0 for p in parts]
     if not parts:
         return np.zeros(0), np.zeros(0)
+    scale = [1.0 / np.sqrt(len(p)) if len(parts) > 1 else 1.0 for p in parts]
     return (np.concatenate([p * c for p, c in zip(parts, scale)]),
             np.concatenate([g * c for g, c in zip(slopes, scale)]))
