@@ -72,6 +72,7 @@ from imaging.segment_regions import (
     _components,
     _interior_median,
     glands_off_muscle,
+    skin_rim_off,
 )
 
 #: Gland and fat levels closer than this fraction of the fat level are one class (no gland).
@@ -187,8 +188,10 @@ def segment_volume(
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
                 muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
+    posterior = _posterior_axis(pre.GetDirection())
     _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3,
-                posterior=_posterior_axis(pre.GetDirection()))
+                posterior=posterior)
+    skin_rim_off(r, sp, notes, seeds=seeds, posterior=posterior)
     labels = _label_map(a, pre, r, kind, notes, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
