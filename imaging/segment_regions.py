@@ -227,7 +227,10 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     back, counted along the posterior axis ``posterior`` in a run of muscle that starts at
     the back, within ``skin_mm`` of the air and next to ``breast`` (the wall's free front
     between the breasts, and its stretches thicker than the median, stay muscle: they are
-    not near both).
+    not near both). On voxels coarser than half ``skin_mm`` along that axis nothing of a
+    skin lies past the margin, and nothing is taken: on the suite's 2 mm coil at SNR 13 the
+    rule took 76-91 voxels of air the muscle's edge had drawn in, gave them to the breast,
+    and its tilted registration moved 0.67 -> 1.21 mm from the truth.
 
     Returns
     -------
@@ -236,6 +239,8 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     """
     sp = np.asarray(spacing_zyx, float)
     none = np.zeros(muscle.shape, bool)
+    if sp[posterior[0]] > 0.5 * skin_mm:  # no voxel of skin would lie past the margin
+        return muscle, none
     half = _wall_half(ndimage.distance_transform_edt(muscle, sampling=sp), sp, posterior[0])
     if half is None or not air.any():
         return muscle, none

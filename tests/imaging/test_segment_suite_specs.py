@@ -303,6 +303,9 @@ def test_skin_rim_off_muscle_takes_the_wedge_in_front_of_the_wall_only():
     assert np.count_nonzero(rim & wedge) >= 0.9 * np.count_nonzero(wedge & (y <= 38))
     assert not (rim & (wall | thicker)).any()
     assert (kept == muscle & ~rim).all()
+    # voxels of 2 mm along the posterior axis: no skin lies past the margin, nothing taken
+    kept, rim = skin_rim_off_muscle(muscle, body, thorax, air, breast, np.array([1., 2., 1.]))
+    assert not rim.any() and (kept == muscle).all()
     # no breast next to it: nothing is taken
     kept, rim = skin_rim_off_muscle(wall | thicker, wall | thicker, thorax, ~(wall | thicker),
                                     np.zeros_like(body), sp)
