@@ -188,10 +188,8 @@ def segment_volume(
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
                 muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
-    posterior = _posterior_axis(pre.GetDirection())
     _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3,
-                posterior=posterior)
-    skin_rim_off(r, sp, notes, seeds=seeds, posterior=posterior)
+                posterior=_posterior_axis(pre.GetDirection()))
     labels = _label_map(a, pre, r, kind, notes, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
@@ -290,13 +288,20 @@ def _glands_off(r: dict, a: np.ndarray, sp: np.ndarray, kind: str, notes: list, 
                 seeds, min_region_mm3: float, posterior: tuple[int, bool]) -> None:
     """Glands the muscle's region took in go back to the breast
     (:func:`imaging.segment_regions.glands_off_muscle`), in place; with fat suppressed their
-    level is the gland's. A user's muscle seed has the last word: then nothing is taken."""
+    level is the gland's. Then the breast's skin at its rim
+    (:func:`imaging.segment_regions.skin_rim_off`). A user's muscle seed has the last word:
+    then nothing is taken."""
     if any(s.label == MUSCLE for s in seeds):
         return
     muscle, blobs = glands_off_muscle(r["muscle"], r["body"], r["thorax"], sp,
                                       min_mm3=min_region_mm3, posterior=posterior)
-    if not blobs.any():
-        return
+    if blobs.any():
+        _blobs_off(r, a, sp, kind, notes, muscle, blobs)
+    skin_rim_off(r, sp, notes, seeds=seeds, posterior=posterior)
+
+
+def _blobs_off(r, a, sp, kind, notes, muscle, blobs) -> None:
+    """Record the glands taken off the muscle in the regions ``r`` and the notes."""
     r["muscle"], r["muscle_start"] = muscle, r["muscle_start"] & ~blobs
     if kind == "fat_suppressed":
         r["lv"]["gland"] = float(np.median(a[blobs]))
