@@ -221,13 +221,13 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     Where the breast's skin meets the chest wall's front at a shallow angle, the breast is
     skin alone for a few voxels, and skin is as bright as muscle (fat suppressed): the
     muscle's active contour takes that wedge in, and a model built on it has a ring of muscle
-    around each breast's base (on the suite's slabs 480-520 voxels a scan, which alone made
+    around each breast's base (on the suite's slabs 480-630 voxels a scan, which alone made
     the fitted modulus 12 % soft on one). The wedge lies in front of the wall: its voxels
     are the muscle's that lie beyond the wall's thickness plus one voxel from the wall's
     back, counted along the posterior axis ``posterior`` in a run of muscle that starts at
-    the back, within ``skin_mm`` of the air and next to ``breast`` (the wall's free front
-    between the breasts, and its stretches thicker than the median, stay muscle: they are
-    not near both). On voxels coarser than half ``skin_mm`` along that axis nothing of a
+    the back, and within ``skin_mm`` of the air, in pieces that touch ``breast`` (the wall's
+    free front between the breasts is near the air but not beyond the wall; its stretches
+    thicker than the median are beyond it but not near the air: both stay muscle). On voxels coarser than half ``skin_mm`` along that axis nothing of a
     skin lies past the margin, and nothing is taken: on the suite's 2 mm coil at SNR 13 the
     rule took 76-91 voxels of air the muscle's edge had drawn in, gave them to the breast,
     and its tilted registration moved 0.67 -> 1.21 mm from the truth.
