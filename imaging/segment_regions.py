@@ -227,10 +227,11 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     back, counted along the posterior axis ``posterior`` in a run of muscle that starts at
     the back, and within ``skin_mm`` of the air, in pieces that touch ``breast`` (the wall's
     free front between the breasts is near the air but not beyond the wall; its stretches
-    thicker than the median are beyond it but not near the air: both stay muscle). On voxels coarser than half ``skin_mm`` along that axis nothing of a
-    skin lies past the margin, and nothing is taken: on the suite's 2 mm coil at SNR 13 the
-    rule took 76-91 voxels of air the muscle's edge had drawn in, gave them to the breast,
-    and its tilted registration moved 0.67 -> 1.21 mm from the truth.
+    thicker than the median are beyond it but not near the air: both stay muscle). On
+    voxels coarser than half ``skin_mm`` along that axis nothing of a skin lies past the
+    margin, and nothing is taken: on the suite's 2 mm coil at SNR 13 the rule took 76-91
+    voxels of air the muscle's edge had drawn in, gave them to the breast, and its tilted
+    registration moved 0.67 -> 1.21 mm from the truth.
 
     Returns
     -------
