@@ -297,7 +297,7 @@ def _glands_off(r: dict, a: np.ndarray, sp: np.ndarray, kind: str, notes: list, 
                                       min_mm3=min_region_mm3, posterior=posterior)
     if blobs.any():
         _blobs_off(r, a, sp, kind, notes, muscle, blobs)
-    skin_rim_off(r, sp, notes, seeds=seeds, posterior=posterior)
+    skin_rim_off(r, sp, notes, posterior=posterior)
 
 
 def _blobs_off(r, a, sp, kind, notes, muscle, blobs) -> None:

@@ -245,11 +245,9 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     half = _wall_half(ndimage.distance_transform_edt(muscle, sampling=sp), sp, posterior[0])
     if half is None or not air.any():
         return muscle, none
-    back = ~muscle & ~(body & ~thorax)
-    from_back = _wall_along(muscle, back, sp, posterior, np.inf)
-    wall = _wall_along(muscle, back, sp, posterior, 2.0 * half + float(sp[posterior[0]]))
+    depth = _depth_from_back(muscle, ~muscle & ~(body & ~thorax), sp, posterior)
     near_air = ndimage.distance_transform_edt(~air, sampling=sp) <= skin_mm
-    beyond = muscle & from_back & ~wall & near_air
+    beyond = np.isfinite(depth) & (depth > 2.0 * half + float(sp[posterior[0]])) & near_air
     lab, n = _components(beyond)
     touch = np.zeros(n + 1, bool)
     touch[np.unique(lab[ndimage.binary_dilation(breast) & beyond])] = True
@@ -258,13 +256,11 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     return muscle & ~rim, rim
 
 
-def skin_rim_off(r: dict, sp: np.ndarray, notes: list, *, seeds,
-                  posterior: tuple[int, bool]) -> None:
+def skin_rim_off(r: dict, sp: np.ndarray, notes: list, *,
+                 posterior: tuple[int, bool]) -> None:
     """The breast's skin the muscle took at the breast's rim goes back to the breast
-    (:func:`skin_rim_off_muscle`), in place; a user's muscle seed
-    has the last word."""
-    if any(s.label == MUSCLE for s in seeds):
-        return
+    (:func:`skin_rim_off_muscle`), in place (the caller leaves it out where a user's muscle
+    seed has the last word)."""
     breast = r["body"] & ~r["thorax"] & ~r["muscle"] & ~r["marker_mask"]
     muscle, rim = skin_rim_off_muscle(r["muscle"], r["body"], r["thorax"], r["air"], breast,
                                       sp, posterior=posterior)
@@ -304,6 +300,13 @@ def _wall_along(muscle, back, sp, posterior, depth_mm):
     (``posterior`` = (array axis, index grows anterior)): those whose run of muscle voxels
     toward the back starts at ``back`` (or the field of view's edge) no more than
     ``depth_mm`` away."""
+    return _depth_from_back(muscle, back, sp, posterior) <= depth_mm
+
+
+def _depth_from_back(muscle, back, sp, posterior):
+    """Depth (mm) of each muscle voxel in its run of muscle voxels along the posterior axis,
+    counted from the run's start when that start lies on ``back`` (or the field of view's
+    edge); inf elsewhere (outside the muscle, or a run that starts elsewhere)."""
     axis, anterior = posterior
     m = np.moveaxis(muscle, axis, 0)
     b = np.moveaxis(back, axis, 0)
@@ -315,10 +318,10 @@ def _wall_along(muscle, back, sp, posterior, depth_mm):
     start = np.maximum.accumulate(np.where(starts, idx, -1), axis=0)
     behind = np.concatenate([np.ones((1,) + m.shape[1:], bool), b[:-1]])  # edge = back
     from_back = np.take_along_axis(behind, np.maximum(start, 0), axis=0)
-    wall = m & from_back & ((idx - start + 1) * float(sp[axis]) <= depth_mm)
+    depth = np.where(m & from_back, (idx - start + 1) * float(sp[axis]), np.inf)
     if not anterior:
-        wall = wall[::-1]
-    return np.moveaxis(wall, 0, axis)
+        depth = depth[::-1]
+    return np.moveaxis(depth, 0, axis)
 
 
 def _opening(dt: np.ndarray, radius: float, sp: np.ndarray) -> np.ndarray:
