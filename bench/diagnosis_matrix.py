@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import os
 import platform
 import shutil
@@ -139,7 +140,10 @@ FEBIO_CASES = {
     # mesh (our solver) cables 30x the default stiffness moved the skin by 0.22 mm at most
     "ligaments_weak": ("ligaments", "ligaments"),
     "fascia": ("fascia", "fascia"),
-    "skin": ("skin", "skin"),
+    # the skin written as a solid layer one element thick (FEBio's shells fail on these
+    # subjects, ``PHYSICS`` in breastmodel/phantom/subject_spec.py)
+    "skin": ("skin", "skin_layer"),
+    "skin_weak": ("skin", "skin_layer_weak"),
     "none": ("none", "bulk"),
 }
 #: The measurement classes on the FEBio suite: the control subject (bulk truth) with one
@@ -276,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("/tmp/diagnosis_matrix"))
     ap.add_argument("--results", type=Path, default=None,
                     help="default bench/results/diagnosis_matrix[_febio].json")
+    ap.add_argument("--merge", action="store_true",
+                    help="keep the results file's other rows (and its notes); rows of the "
+                         "same case and seed are replaced")
     args = ap.parse_args(argv)
     known = MOUND_CASES if args.suite == "mounds" else {**FEBIO_CASES, **FEBIO_MEASUREMENT}
     names = [n for n in (args.cases or ",".join(known)).split(",") if n]
@@ -300,6 +307,11 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['worst_mhd_mm']:6.2f} {_fmt(r['verified_worst_mhd_mm'], '6.2f'):>6} "
               f"{r['diagnose_s']:7.1f}", flush=True)
         write_json(args.out / "rows.partial.json", {"suite": args.suite, "rows": rows})
+    kept = {}
+    if args.merge and results.exists():
+        kept = json.loads(results.read_text())
+        tags = {r["tag"] for r in rows}
+        rows = [r for r in kept.get("rows", []) if r.get("tag") not in tags] + rows
     summary = summarise(rows)
     print(f"top-1 {summary['top1']:.2f}, top-3 {summary['top3']:.2f}, false alarms on none "
           f"{summary['false_alarms_on_none']}, verified re-fit halves the worst MHD: "
@@ -307,10 +319,12 @@ def main(argv: list[str] | None = None) -> int:
     n_tets = 6 * args.cells[0] * args.cells[1] * (args.cells[2] + args.cells[3]) \
         if args.suite == "mounds" else None
     write_json(results, {
+        **{k: v for k, v in kept.items() if k in ("note", "not_run", "extra_rows")},
         "suite": args.suite, "cells": list(args.cells), "n_tets": n_tets,
         "stress_free": args.stress_free, "workers": args.workers, "rows": rows,
         "summary": summary, "machine": platform.node(), "cpus": os.cpu_count(),
-        "seeds": args.seeds if args.suite == "febio" else None})
+        "seeds": sorted({r["tag"].rsplit("-", 1)[-1] for r in rows if r.get("tag")})
+        if args.merge else (args.seeds if args.suite == "febio" else None)})
     return 0
 
 

@@ -21,9 +21,15 @@ REGIONS: Mapping[str, int] = MappingProxyType(
         "breast_right": 3,
         "gland_left": 4,
         "gland_right": 5,
+        # the breast's outermost tets, one element thick under the skin, given their own law
+        # only by a truth model whose skin is a solid layer (never by the pipeline's meshes)
+        "skin_layer_left": 6,
+        "skin_layer_right": 7,
     }
 )
-BREAST_REGIONS = (1, 3, 4, 5)
+BREAST_REGIONS = (1, 3, 4, 5, 6, 7)
+#: Breast region code -> its side's bulk code (breast_left 1 or breast_right 3).
+BREAST_SIDE: Mapping[int, int] = MappingProxyType({1: 1, 4: 1, 6: 1, 3: 3, 5: 3, 7: 3})
 
 
 def _frozen(a, dtype) -> np.ndarray:
@@ -173,3 +179,23 @@ def hinged_tets(tets: np.ndarray, *, max_fraction: float = 0.01) -> np.ndarray:
     shared = (n_groups[tets] > 1).any(axis=1)
     small = size[label] <= max_fraction * len(tets)
     return np.flatnonzero(shared & small)
+
+
+def with_skin_layer(mesh: Mesh) -> Mesh:
+    """Copy of ``mesh`` whose breast tets (fat or gland) that own a face of face set ``skin``
+    carry the codes ``skin_layer_left`` / ``skin_layer_right`` of their side: a skin one
+    element thick, for a truth model that writes the skin as a solid layer."""
+    skin = np.sort(np.asarray(mesh.face_sets.get("skin", np.zeros((0, 3))), np.int64), axis=1)
+    faces = np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2)
+    owner = np.repeat(np.arange(mesh.n_tets), 4)
+    both = np.vstack([faces.reshape(-1, 3), skin])
+    _, inv = np.unique(both, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    on_skin = np.isin(inv[: len(owner)], inv[len(owner):])
+    layer = np.zeros(mesh.n_tets, bool)
+    layer[owner[on_skin]] = True
+    region = np.array(mesh.region)
+    for code, side in BREAST_SIDE.items():
+        sel = layer & (mesh.region == code)
+        region[sel] = REGIONS["skin_layer_left" if side == 1 else "skin_layer_right"]
+    return replace(mesh, region=region)

@@ -37,6 +37,7 @@ from breastmodel.phantom.subject_spec import (
     SubjectSpec,
 )
 from breastmodel.phantom.truth_model import NU, TruthModel
+from mechanics.mesh import BREAST_SIDE
 
 __all__ = [
     "SubjectSpec", "draw_spec", "make_subject", "truth_model", "CUPS", "FOV_KINDS", "PHYSICS",
@@ -61,7 +62,7 @@ def truth_model(spec: SubjectSpec) -> TruthModel:
     for part in spec.physics.split("+"):
         over, eff = PHYSICS[part]
         for code, o in over.items():
-            m = dict(mats.get(code, mats[1 if code in (1, 4) else 3]))
+            m = dict(mats[code] if code in mats else mats[BREAST_SIDE[code]])
             o = dict(o)
             m["E"] = float(m["E"]) * float(o.pop("E_factor", 1.0))
             m.update(o)

@@ -153,7 +153,6 @@ def simulate_positions(
         A position whose solve does not reach full load (names the position), or FEBio
         missing (says how to give it).
     """
-    from mechanics.effects._interface import split_interface
     from mechanics.model import build_model
 
     tm = truth_model if truth_model is not None else default_truth_model()
@@ -162,7 +161,7 @@ def simulate_positions(
     if mesh is None:
         mesh = _truth_mesh(anatomy, tm, voxel_size, cache_dir=cache_dir, progress=progress,
                            timings=timings)
-    solved_mesh = split_interface(mesh) if tm.split_interface else mesh
+    solved_mesh = _mesh_to_solve(mesh, tm)
     materials = _truth_materials(tm, solved_mesh.region)
     X = np.asarray(solved_mesh.nodes, float)
     out: dict[str, SimulatedPosition] = {}
@@ -221,13 +220,25 @@ def _truth_mesh(anatomy: Anatomy, tm: TruthModel, voxel_size, *, cache_dir, prog
     return mesh
 
 
+def _mesh_to_solve(mesh, tm: TruthModel):
+    """The truth mesh as the truth model solves it: its skin layer relabelled when the model
+    has one, its breast-muscle interface split when an effect slides on it."""
+    from mechanics.effects._interface import split_interface
+    from mechanics.mesh import with_skin_layer
+
+    mesh = with_skin_layer(mesh) if tm.has_skin_layer else mesh
+    return split_interface(mesh) if tm.split_interface else mesh
+
+
 def _truth_materials(tm: TruthModel, region: np.ndarray) -> dict[int, dict]:
-    """Region code -> material of the truth model for the mesh's regions; gland tissue
-    without its own law inherits its side's bulk law."""
+    """Region code -> material of the truth model for the mesh's regions; gland tissue and
+    skin layer without their own law inherit their side's bulk law."""
+    from mechanics.mesh import BREAST_SIDE
+
     materials = {int(k): dict(v) for k, v in tm.materials.items()}
-    for gland, breast in ((4, 1), (5, 3)):
-        if gland in region and gland not in materials and breast in materials:
-            materials[gland] = dict(materials[breast])
+    for code, breast in BREAST_SIDE.items():
+        if code in region and code not in materials and breast in materials:
+            materials[code] = dict(materials[breast])
     for code in set(region.tolist()) - set(materials):
         raise ValueError(f"phantom: truth model has no material for mesh region {code}")
     return materials

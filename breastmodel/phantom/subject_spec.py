@@ -62,6 +62,13 @@ PHYSICS: dict[str, tuple[dict[int, dict], dict[str, dict]]] = {
     # default) seed 3's prone truth converges and its supine stops at load 0.06 with negative
     # Jacobians (the error names the position and FEBio's message)
     "skin": ({}, {"skin": {"E": 4.0, "thickness": 2.0}}),
+    # the skin as a solid layer: the breast tets that own a skin face (region codes
+    # skin_layer_left/right; their volume over the skin's area is 1.4 mm on small-003's
+    # 5 mm truth mesh) ten times stiffer than the breast, about a 2 mm membrane of 8 kPa
+    # (the paper's box: 1-20 kPa); three times near the noise floor. FEBio's UT4 solids
+    # carry it where its shells fail (above)
+    "skin_layer": ({6: {"E_factor": 10.0}, 7: {"E_factor": 10.0}}, {}),
+    "skin_layer_weak": ({6: {"E_factor": 3.0}, 7: {"E_factor": 3.0}}, {}),
     "fascia": ({}, {"fascia": {"E": 120.0, "thickness": 0.1}}),
     "ligaments": ({}, {"ligaments": {"E": 100.0}}),
 }

@@ -89,6 +89,12 @@ class TruthModel:
                    for k, v in self.effects.items() if effect_name(k) in EFFECTS)
 
     @property
+    def has_skin_layer(self) -> bool:
+        """True when the truth gives the breast's outermost tets their own law (a material
+        for region skin_layer_left or skin_layer_right): the skin written as a solid layer."""
+        return any(REGIONS[k] in self.materials for k in ("skin_layer_left", "skin_layer_right"))
+
+    @property
     def split_interface(self) -> bool:
         """True when the interface nodes must be duplicated (an effect declares
         ``split_interface``)."""

@@ -225,8 +225,32 @@ def test_truth_physics_presets():
         gent = truth_model(draw_spec(0, breast_E_kpa=2.0, physics=physics))
         assert all(gent.materials[c]["name"] == "gent" and gent.materials[c]["Jm"] == jm
                    and gent.materials[c]["E"] == 2.0 for c in (1, 3))
+    for physics, f in (("skin_layer", 10.0), ("skin_layer_weak", 3.0)):
+        layer = truth_model(draw_spec(0, breast_E_kpa=2.0, physics=physics))
+        assert layer.has_skin_layer and not bulk.has_skin_layer and not layer.has_gland
+        assert [layer.materials[c]["E"] for c in (1, 3, 6, 7)] == [2.0, 2.0, 2 * f, 2 * f]
+        assert layer.materials[6]["name"] == "neo_hookean" and dict(layer.effects) == dict(
+            bulk.effects)
     with pytest.raises(ValueError, match="unknown physics"):
         draw_spec(0, physics="magic")
+
+
+def test_the_skin_layer_is_the_breast_tets_that_own_a_skin_face():
+    from breastmodel.phantom.mounds import mound_mesh
+    from mechanics.mesh import REGIONS, with_skin_layer
+
+    mesh = mound_mesh(cells=(8, 6, 3, 2))
+    layer = with_skin_layer(mesh)
+    faces = {tuple(sorted(f)) for f in mesh.face_sets["skin"].tolist()}
+    owns = np.array([any(tuple(sorted(np.delete(t, k))) in faces for k in range(4))
+                     for t in mesh.tets.tolist()])
+    changed = layer.region != mesh.region
+    assert owns.any() and np.array_equal(changed, owns)  # exactly the tets under the skin
+    assert set(mesh.region[owns].tolist()) <= {1, 3}  # skin faces belong to breast tets
+    for side, code in (("left", 1), ("right", 3)):  # each keeps its side
+        assert np.all(layer.region[owns & (mesh.region == code)]
+                      == REGIONS[f"skin_layer_{side}"])
+    assert np.array_equal(layer.face_sets["skin"], mesh.face_sets["skin"])
 
 
 # --- FEBio truth --------------------------------------------------------------------------
