@@ -319,12 +319,12 @@ def main(argv: list[str] | None = None) -> int:
     n_tets = 6 * args.cells[0] * args.cells[1] * (args.cells[2] + args.cells[3]) \
         if args.suite == "mounds" else None
     write_json(results, {
-        **{k: v for k, v in kept.items() if k in ("note", "not_run", "extra_rows")},
         "suite": args.suite, "cells": list(args.cells), "n_tets": n_tets,
         "stress_free": args.stress_free, "workers": args.workers, "rows": rows,
         "summary": summary, "machine": platform.node(), "cpus": os.cpu_count(),
         "seeds": sorted({r["tag"].rsplit("-", 1)[-1] for r in rows if r.get("tag")})
-        if args.merge else (args.seeds if args.suite == "febio" else None)})
+        if args.merge else (args.seeds if args.suite == "febio" else None),
+        **{k: v for k, v in kept.items() if k in ("note", "not_run", "extra_rows")}})
     return 0
 
 
