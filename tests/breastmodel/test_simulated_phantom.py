@@ -212,6 +212,8 @@ def test_a_skin_layer_truth_holds_the_skin_up():
     """A truth whose breast tets under the skin are ten times stiffer (the family's
     ``skin_layer`` physics) solves on the same mesh with those tets relabelled, and the
     skin sags less than the bulk truth's (our solver, 8 mm mesh, prone: 4.0 -> 2.1 mm)."""
+    from dataclasses import replace
+
     from breastmodel.phantom.simulated import anatomy_mesh
     from mechanics.mesh import REGIONS
 
@@ -232,3 +234,6 @@ def test_a_skin_layer_truth_holds_the_skin_up():
         sag[name] = np.linalg.norm(sim.x[skin] - sim.X[skin], axis=1)
     assert sag["bulk"].max() > 1.0
     assert sag["layer"].max() < 0.7 * sag["bulk"].max(), (sag["layer"].max(), sag["bulk"].max())
+    bare = replace(mesh, face_sets={k: v for k, v in mesh.face_sets.items() if k != "skin"})
+    with pytest.raises(ValueError, match="has a skin layer, but the mesh has no breast tet"):
+        simulate_positions(anatomy, tm, ("prone",), mesh=bare, progress=False)
