@@ -240,6 +240,7 @@ def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
         "run_s": t_run, "diagnose_s": wall,
         "diagnose_cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system),
         "verdict": d["verdict"],
+        "confounders": [{"name": c["name"], "change": c["change"]} for c in d["confounders"]],
     }
 
 

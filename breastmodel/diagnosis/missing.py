@@ -87,6 +87,8 @@ from breastmodel.diagnosis.residual import (
 from breastmodel.diagnosis.scoring import (
     SIGNIFICANT_FLOOR_FRACTION,
     SIGNIFICANT_MIN_MM,
+    confounders,
+    confounding_sentence,
     score_candidates,
 )
 from breastmodel.diagnosis.verify import verify_effect, verify_measurement
@@ -131,7 +133,9 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         first: name, kind, doc, explained fraction, predicted RMS and mean |e| per position,
         estimated parameters, significant, evidence per region, verified metrics),
         ``skipped`` (what is not scored and why), ``failed`` (candidates whose evaluation
-        failed), ``verdict`` (one sentence).
+        failed), ``confounders`` (candidates not significant whose re-fit moves a fitted
+        parameter by :data:`~breastmodel.diagnosis.scoring.CONFOUNDING_CHANGE` or more,
+        named in the verdict too), ``verdict`` (one sentence).
     """
     from breastmodel.pipeline.problem import skin_nodes
 
@@ -292,6 +296,10 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
                    f"residual RMS {base.rms_base:.3f} mm): the residual is noise, or the "
                    f"missing effect is not in the library; the largest residuals are at "
                    f"{carriers}")
+    refit = {q: plan.theta0[q] * math.exp(zq) for q, zq in base.z_base.items()}
+    confounding = confounders(ranking, refit)
+    if confounding:
+        verdict = f"{verdict}; {confounding_sentence(confounding)}"
     # where each of the best candidates acts: its predicted change of the residual, beside
     # the residual it is to explain (over the scored nodes, in canonical skin-node order)
     keep = lin.keep
@@ -304,9 +312,8 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
         "noise_floor_mm": base.floor, "noise_floor_from": base.floor_from,
         "baseline": {"rms_mm": base.rms_now, "rms_after_refit_mm": base.rms_base,
                      "per_position": lin.per_position(base.r_base), "mhd_mm": base_mhd,
-                     "refit_estimate": {q: plan.theta0[q] * math.exp(zq)
-                                        for q, zq in base.z_base.items()}},
-        "fitted_parameters": fitted,
+                     "refit_estimate": refit},
+        "fitted_parameters": fitted, "confounders": confounding,
         "rim_mm": float(rim_mm), "n_skin_nodes": int(len(keep)),
         "n_scored_nodes": int(keep.sum()),
         "ranking": ranking, "skipped": skipped, "failed": failed,

@@ -187,6 +187,30 @@ def test_a_control_without_hidden_effect_reports_noise(tmp_path):
     assert not [r["name"] for r in d["ranking"] if r["significant"]]
     assert d["verdict"].startswith("no candidate explains more than the noise")
     assert d["noise_floor_mm"] == pytest.approx(0.1, rel=0.35)
+    # where the model is right, no fitted parameter moves with a candidate the data reject
+    assert d["confounders"] == [] and "would move with effects" not in d["verdict"]
+
+
+def test_a_fitted_parameter_that_moves_with_an_unseen_effect_is_named():
+    from breastmodel.diagnosis.scoring import confounders, confounding_sentence
+
+    ranking = [  # estimates: the fitted parameters re-fitted with each candidate
+        {"name": "misregistration:prone", "significant": True, "explained": 0.8,
+         "estimate": {TIED_E: 1.0}},  # significant: the verdict names it already
+        {"name": "skin", "significant": False, "explained": 0.15,
+         "estimate": {TIED_E: 1.1, "effects.skin.E": 20.0}},
+        {"name": "fascia", "significant": False, "explained": 0.01,
+         "estimate": {TIED_E: 1.55}},  # -3 %: the modulus does not depend on it
+        {"name": "strain_stiffening", "significant": False, "explained": 0.06,
+         "estimate": {TIED_E: 1.28}},
+    ]
+    found = confounders(ranking, {TIED_E: 1.6})
+    assert [(f["name"], round(f["change"], 4)) for f in found] == [
+        ("skin", -0.3125), ("strain_stiffening", -0.2)]
+    said = confounding_sentence(found)
+    assert f"the fitted {TIED_E} would move" in said
+    assert "-31 % with skin, -20 % with strain_stiffening" in said
+    assert "--add-effect skin" in said and confounding_sentence([]) == ""
 
 
 # ---------------------------------------------------------------- more hidden effects (slow)
