@@ -168,7 +168,7 @@ def _score(c: Candidate, columns, lin: Linearisation, base: Baseline, plan: Plan
 #: the verdict: the fitted value depends on whether that effect is there. On FEBio truths
 #: with a solid skin layer 10x the breast (bench/diagnosis_matrix.py, small-003) the skin
 #: explained 15 % (not significant) while the fitted modulus was 36 % stiff; its re-fit moved
-#: the modulus by -32 % (truth: -26 %).
+#: the modulus by -31 % (truth: -26 %).
 CONFOUNDING_CHANGE = 0.10
 
 
@@ -176,7 +176,8 @@ def confounders(ranking: Sequence[dict], base_estimate: dict, *,
                 change: float = CONFOUNDING_CHANGE) -> list[dict]:
     """The non-significant candidates whose estimate moves a fitted parameter by ``change``
     (a fraction) or more against the re-fit without them (``base_estimate``), the largest
-    change first: ``name``, ``parameter``, ``change`` and the candidate's ``explained``."""
+    change first: ``name``, ``parameter``, ``change``, the candidate's ``explained`` and
+    ``measurement`` kind ("" for a physical effect or a parameter)."""
     out = []
     for r in ranking:
         est = r.get("estimate") or {}
@@ -186,7 +187,8 @@ def confounders(ranking: Sequence[dict], base_estimate: dict, *,
             c = float(est[q]) / float(v0) - 1.0
             if abs(c) >= change:
                 out.append({"name": r["name"], "parameter": q, "change": c,
-                            "explained": r["explained"]})
+                            "explained": r["explained"],
+                            "measurement": r.get("measurement", "")})
     return sorted(out, key=lambda d: -abs(d["change"]))
 
 
@@ -201,7 +203,9 @@ def confounding_sentence(found: Sequence[dict], *, most: int = 3) -> str:
     parts = []
     for q, fs in by_param.items():
         moves = ", ".join(f"{100 * f['change']:+.0f} % with {f['name']}" for f in fs[:most])
+        model = next((f["name"] for f in fs if not f["measurement"]), None)  # can be added
+        check = (f"; check with `breastmodel run --from RUN --add-effect {model}`"
+                 if model else "")
         parts.append(f"the fitted {q} would move with effects the data hardly see: {moves} "
-                     f"(linear estimates; check with `breastmodel run --from RUN --add-effect "
-                     f"{fs[0]['name']}`)")
+                     f"(linear estimates{check})")
     return "; ".join(parts)

@@ -211,6 +211,12 @@ def test_a_fitted_parameter_that_moves_with_an_unseen_effect_is_named():
     assert f"the fitted {TIED_E} would move" in said
     assert "-31 % with skin, -20 % with strain_stiffening" in said
     assert "--add-effect skin" in said and confounding_sentence([]) == ""
+    # a misregistration is no effect to add: the check names the first one that is
+    rigid = [{"name": "misregistration:prone", "significant": False, "explained": 0.1,
+              "measurement": "rigid", "estimate": {TIED_E: 0.8}}]
+    said = confounding_sentence(confounders(rigid + ranking[1:], {TIED_E: 1.6}))
+    assert "-50 % with misregistration:prone, -31 % with skin" in said
+    assert "--add-effect skin`" in said and "--add-effect misregistration" not in said
 
 
 # ---------------------------------------------------------------- more hidden effects (slow)
