@@ -28,6 +28,8 @@ REGIONS: Mapping[str, int] = MappingProxyType(
     }
 )
 BREAST_REGIONS = (1, 3, 4, 5, 6, 7)
+#: The skin layer's codes (left, right), see :func:`with_skin_layer`.
+SKIN_LAYER_REGIONS = (REGIONS["skin_layer_left"], REGIONS["skin_layer_right"])
 #: Breast region code -> its side's bulk code (breast_left 1 or breast_right 3).
 BREAST_SIDE: Mapping[int, int] = MappingProxyType({1: 1, 4: 1, 6: 1, 3: 3, 5: 3, 7: 3})
 
@@ -146,6 +148,13 @@ def orient_tets(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return tets
 
 
+def sorted_tet_faces(tets: np.ndarray) -> np.ndarray:
+    """(4 M, 3) the four faces of every tet, node indices sorted (tet i's in rows 4 i to
+    4 i + 3): equal rows are one face."""
+    tets = np.asarray(tets, np.int64)
+    return np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+
+
 def face_components(tets: np.ndarray) -> np.ndarray:
     """(M,) component label of each tet, tets joined when they share a face.
 
@@ -154,8 +163,7 @@ def face_components(tets: np.ndarray) -> np.ndarray:
     import scipy.sparse as sp
     from scipy.sparse.csgraph import connected_components
 
-    tets = np.asarray(tets, np.int64)
-    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+    faces = sorted_tet_faces(tets)
     owner = np.repeat(np.arange(len(tets)), 4)
     _, inv = np.unique(faces, axis=0, return_inverse=True)
     order = np.argsort(inv.ravel(), kind="stable")
@@ -186,9 +194,8 @@ def with_skin_layer(mesh: Mesh) -> Mesh:
     carry the codes ``skin_layer_left`` / ``skin_layer_right`` of their side: a skin one
     element thick, for a truth model that writes the skin as a solid layer."""
     skin = np.sort(np.asarray(mesh.face_sets.get("skin", np.zeros((0, 3))), np.int64), axis=1)
-    faces = np.sort(mesh.tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2)
     owner = np.repeat(np.arange(mesh.n_tets), 4)
-    both = np.vstack([faces.reshape(-1, 3), skin])
+    both = np.vstack([sorted_tet_faces(mesh.tets), skin])
     _, inv = np.unique(both, axis=0, return_inverse=True)
     inv = inv.ravel()
     on_skin = np.isin(inv[: len(owner)], inv[len(owner):])
@@ -196,6 +203,5 @@ def with_skin_layer(mesh: Mesh) -> Mesh:
     layer[owner[on_skin]] = True
     region = np.array(mesh.region)
     for code, side in BREAST_SIDE.items():
-        sel = layer & (mesh.region == code)
-        region[sel] = REGIONS["skin_layer_left" if side == 1 else "skin_layer_right"]
+        region[layer & (mesh.region == code)] = SKIN_LAYER_REGIONS[side != 1]
     return replace(mesh, region=region)

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import SimpleITK as sitk
 
-from mechanics.mesh import REGIONS, Mesh, face_components
+from mechanics.mesh import REGIONS, Mesh, face_components, sorted_tet_faces
 from meshing import _occupancy, _tetwild
 from meshing.improve import collapse_short_edges, relocate_boundary_nodes, relocate_free_nodes
 from meshing.labels import Grid, TissueMasks, repaired, tissue_masks
@@ -65,7 +65,7 @@ def _drop_unused(nodes, tets):
 def _clean_isolated(tets: np.ndarray, region: np.ndarray) -> np.ndarray:
     """Give a tet the region of its face neighbours when all of them disagree with it
     (single misclassified tets at the fuzzy end of the interface)."""
-    faces = np.sort(tets[:, [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]], axis=2).reshape(-1, 3)
+    faces = sorted_tet_faces(tets)
     owner = np.repeat(np.arange(len(tets)), 4)
     _, inv, cnt = np.unique(faces, axis=0, return_inverse=True, return_counts=True)
     inv = inv.ravel()

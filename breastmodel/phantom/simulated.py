@@ -224,12 +224,11 @@ def _mesh_to_solve(mesh, tm: TruthModel):
     """The truth mesh as the truth model solves it: its skin layer relabelled when the model
     has one, its breast-muscle interface split when an effect slides on it."""
     from mechanics.effects._interface import split_interface
-    from mechanics.mesh import REGIONS, with_skin_layer
+    from mechanics.mesh import SKIN_LAYER_REGIONS, with_skin_layer
 
     if tm.has_skin_layer:
         mesh = with_skin_layer(mesh)
-        layer = [REGIONS["skin_layer_left"], REGIONS["skin_layer_right"]]
-        if not np.isin(mesh.region, layer).any():
+        if not np.isin(mesh.region, SKIN_LAYER_REGIONS).any():
             raise ValueError(f"phantom: truth model {tm.name!r} has a skin layer, but the mesh "
                              "has no breast tet on a face of its face set 'skin'")
     return split_interface(mesh) if tm.split_interface else mesh

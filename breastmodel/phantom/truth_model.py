@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
-from mechanics.mesh import REGIONS
+from mechanics.mesh import REGIONS, SKIN_LAYER_REGIONS
 
 __all__ = ["TruthModel", "default_truth_model", "from_toml", "preset", "PRESETS",
            "with_effects"]
@@ -92,7 +92,7 @@ class TruthModel:
     def has_skin_layer(self) -> bool:
         """True when the truth gives the breast's outermost tets their own law (a material
         for region skin_layer_left or skin_layer_right): the skin written as a solid layer."""
-        return any(REGIONS[k] in self.materials for k in ("skin_layer_left", "skin_layer_right"))
+        return any(code in self.materials for code in SKIN_LAYER_REGIONS)
 
     @property
     def split_interface(self) -> bool:
