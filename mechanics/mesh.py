@@ -25,13 +25,26 @@ REGIONS: Mapping[str, int] = MappingProxyType(
         # only by a truth model whose skin is a solid layer (never by the pipeline's meshes)
         "skin_layer_left": 6,
         "skin_layer_right": 7,
+        # the breast's deepest tets, one element thick on the breast-muscle interface: the
+        # loose retromammary tissue the breast slides on, given its own law only by a truth
+        # model (see ``LAYER_REGIONS``)
+        "interface_layer_left": 8,
+        "interface_layer_right": 9,
     }
 )
-BREAST_REGIONS = (1, 3, 4, 5, 6, 7)
-#: The skin layer's codes (left, right), see :func:`with_skin_layer`.
-SKIN_LAYER_REGIONS = (REGIONS["skin_layer_left"], REGIONS["skin_layer_right"])
+BREAST_REGIONS = (1, 3, 4, 5, 6, 7, 8, 9)
+#: Face set -> the codes (left, right) of the breast tets that own one of its faces, see
+#: :func:`with_layer`.
+LAYER_REGIONS: Mapping[str, tuple[int, int]] = MappingProxyType({
+    "skin": (REGIONS["skin_layer_left"], REGIONS["skin_layer_right"]),
+    "interface": (REGIONS["interface_layer_left"], REGIONS["interface_layer_right"]),
+})
+#: Layers made of every breast tet with a node on the set (not only those owning a face): a
+#: soft layer must separate the breast from what lies beyond it, see :func:`with_layer`.
+LAYER_BY_NODE = frozenset({"interface"})
 #: Breast region code -> its side's bulk code (breast_left 1 or breast_right 3).
-BREAST_SIDE: Mapping[int, int] = MappingProxyType({1: 1, 4: 1, 6: 1, 3: 3, 5: 3, 7: 3})
+BREAST_SIDE: Mapping[int, int] = MappingProxyType(
+    {1: 1, 4: 1, 6: 1, 8: 1, 3: 3, 5: 3, 7: 3, 9: 3})
 
 
 def _frozen(a, dtype) -> np.ndarray:
@@ -189,19 +202,30 @@ def hinged_tets(tets: np.ndarray, *, max_fraction: float = 0.01) -> np.ndarray:
     return np.flatnonzero(shared & small)
 
 
-def with_skin_layer(mesh: Mesh) -> Mesh:
-    """Copy of ``mesh`` whose breast tets (fat or gland) that own a face of face set ``skin``
-    carry the codes ``skin_layer_left`` / ``skin_layer_right`` of their side: a skin one
-    element thick, for a truth model that writes the skin as a solid layer."""
-    skin = np.sort(np.asarray(mesh.face_sets.get("skin", np.zeros((0, 3))), np.int64), axis=1)
+def with_layer(mesh: Mesh, face_set: str) -> Mesh:
+    """Copy of ``mesh`` whose breast tets (fat or gland) on ``face_set`` ("skin" or
+    "interface") carry that set's layer code of their side (``LAYER_REGIONS``): a layer one
+    element thick, for a truth model that writes the skin as a solid layer (the tets that own
+    a skin face) or the breast's base as a soft layer it slides on (the tets with a node on
+    the interface: a tet that touched it by an edge or a vertex only would bridge the layer
+    with the breast's stiffness; with face owners alone, 10x and 50x softer layers moved
+    small-003's skin alike, p95 0.9 and 1.1 mm prone). Tets of another layer keep theirs."""
+    if face_set not in LAYER_REGIONS:
+        raise ValueError(f"mesh: no layer codes for face set {face_set!r} "
+                         f"(known: {', '.join(LAYER_REGIONS)})")
+    faces = mesh.face_sets.get(face_set, np.zeros((0, 3)))
+    faces = np.sort(np.asarray(faces, np.int64), axis=1)
     owner = np.repeat(np.arange(mesh.n_tets), 4)
-    both = np.vstack([sorted_tet_faces(mesh.tets), skin])
+    both = np.vstack([sorted_tet_faces(mesh.tets), faces])
     _, inv = np.unique(both, axis=0, return_inverse=True)
     inv = inv.ravel()
-    on_skin = np.isin(inv[: len(owner)], inv[len(owner):])
+    on_set = np.isin(inv[: len(owner)], inv[len(owner):])
     layer = np.zeros(mesh.n_tets, bool)
-    layer[owner[on_skin]] = True
+    layer[owner[on_set]] = True
+    if face_set in LAYER_BY_NODE:
+        layer |= np.isin(mesh.tets, faces).any(axis=1)
     region = np.array(mesh.region)
-    for code, side in BREAST_SIDE.items():
-        region[layer & (mesh.region == code)] = SKIN_LAYER_REGIONS[side != 1]
+    layers = {c for pair in LAYER_REGIONS.values() for c in pair}
+    for code in set(BREAST_SIDE) - layers:  # fat and gland, left and right
+        region[layer & (mesh.region == code)] = LAYER_REGIONS[face_set][BREAST_SIDE[code] != 1]
     return replace(mesh, region=region)

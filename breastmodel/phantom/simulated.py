@@ -221,16 +221,17 @@ def _truth_mesh(anatomy: Anatomy, tm: TruthModel, voxel_size, *, cache_dir, prog
 
 
 def _mesh_to_solve(mesh, tm: TruthModel):
-    """The truth mesh as the truth model solves it: its skin layer relabelled when the model
-    has one, its breast-muscle interface split when an effect slides on it."""
+    """The truth mesh as the truth model solves it: its layers (skin, interface) relabelled
+    where the model has them, its breast-muscle interface split when an effect slides on it."""
     from mechanics.effects._interface import split_interface
-    from mechanics.mesh import SKIN_LAYER_REGIONS, with_skin_layer
+    from mechanics.mesh import LAYER_REGIONS, with_layer
 
-    if tm.has_skin_layer:
-        mesh = with_skin_layer(mesh)
-        if not np.isin(mesh.region, SKIN_LAYER_REGIONS).any():
-            raise ValueError(f"phantom: truth model {tm.name!r} has a skin layer, but the mesh "
-                             "has no breast tet on a face of its face set 'skin'")
+    for face_set in tm.layers:
+        mesh = with_layer(mesh, face_set)
+        if not np.isin(mesh.region, LAYER_REGIONS[face_set]).any():
+            raise ValueError(f"phantom: truth model {tm.name!r} has a layer on face set "
+                             f"{face_set!r}, but the mesh has no breast tet on one of its "
+                             "faces")
     return split_interface(mesh) if tm.split_interface else mesh
 
 

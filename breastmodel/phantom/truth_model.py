@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 from typing import Any
 
-from mechanics.mesh import REGIONS, SKIN_LAYER_REGIONS
+from mechanics.mesh import LAYER_REGIONS, REGIONS
 
 __all__ = ["TruthModel", "default_truth_model", "from_toml", "preset", "PRESETS",
            "with_effects"]
@@ -89,10 +89,12 @@ class TruthModel:
                    for k, v in self.effects.items() if effect_name(k) in EFFECTS)
 
     @property
-    def has_skin_layer(self) -> bool:
-        """True when the truth gives the breast's outermost tets their own law (a material
-        for region skin_layer_left or skin_layer_right): the skin written as a solid layer."""
-        return any(code in self.materials for code in SKIN_LAYER_REGIONS)
+    def layers(self) -> tuple[str, ...]:
+        """The face sets whose breast tets the truth gives their own law (a material for a
+        code of ``mechanics.mesh.LAYER_REGIONS``): "skin" (the skin written as a solid layer),
+        "interface" (the compliant tissue the breast slides on)."""
+        return tuple(name for name, codes in LAYER_REGIONS.items()
+                     if any(code in self.materials for code in codes))
 
     @property
     def split_interface(self) -> bool:

@@ -225,32 +225,52 @@ def test_truth_physics_presets():
         gent = truth_model(draw_spec(0, breast_E_kpa=2.0, physics=physics))
         assert all(gent.materials[c]["name"] == "gent" and gent.materials[c]["Jm"] == jm
                    and gent.materials[c]["E"] == 2.0 for c in (1, 3))
-    for physics, f in (("skin_layer", 10.0), ("skin_layer_weak", 3.0)):
+    for physics, f, face_set, codes in (("skin_layer", 10.0, "skin", (6, 7)),
+                                        ("skin_layer_weak", 3.0, "skin", (6, 7)),
+                                        ("sliding_layer", 0.5, "interface", (8, 9)),
+                                        ("sliding_layer_weak", 0.8, "interface", (8, 9))):
         layer = truth_model(draw_spec(0, breast_E_kpa=2.0, physics=physics))
-        assert layer.has_skin_layer and not bulk.has_skin_layer and not layer.has_gland
-        assert [layer.materials[c]["E"] for c in (1, 3, 6, 7)] == [2.0, 2.0, 2 * f, 2 * f]
-        assert layer.materials[6]["name"] == "neo_hookean" and dict(layer.effects) == dict(
-            bulk.effects)
+        assert layer.layers == (face_set,) and bulk.layers == () and not layer.has_gland
+        assert [layer.materials[c]["E"] for c in (1, 3, *codes)] == pytest.approx(
+            [2.0, 2.0, 2 * f, 2 * f])
+        assert layer.materials[codes[0]]["name"] == "neo_hookean"
+        assert dict(layer.effects) == dict(bulk.effects) and not layer.split_interface
     with pytest.raises(ValueError, match="unknown physics"):
         draw_spec(0, physics="magic")
 
 
-def test_the_skin_layer_is_the_breast_tets_that_own_a_skin_face():
+def test_a_layer_is_the_breast_tets_that_own_a_face_of_its_set():
+    """The skin layer (the skin as a solid) is exactly the breast tets owning a skin face, the
+    interface layer (the tissue the breast slides on) those with a node on the interface,
+    sides kept; a second layer leaves the first one's tets as they are."""
     from breastmodel.phantom.mounds import mound_mesh
-    from mechanics.mesh import REGIONS, with_skin_layer
+    from mechanics.mesh import REGIONS, with_layer
 
     mesh = mound_mesh(cells=(8, 6, 3, 2))
-    layer = with_skin_layer(mesh)
-    faces = {tuple(sorted(f)) for f in mesh.face_sets["skin"].tolist()}
-    owns = np.array([any(tuple(sorted(np.delete(t, k))) in faces for k in range(4))
-                     for t in mesh.tets.tolist()])
-    changed = layer.region != mesh.region
-    assert owns.any() and np.array_equal(changed, owns)  # exactly the tets under the skin
-    assert set(mesh.region[owns].tolist()) <= {1, 3}  # skin faces belong to breast tets
-    for side, code in (("left", 1), ("right", 3)):  # each keeps its side
-        assert np.all(layer.region[owns & (mesh.region == code)]
-                      == REGIONS[f"skin_layer_{side}"])
-    assert np.array_equal(layer.face_sets["skin"], mesh.face_sets["skin"])
+    owned = {}
+    for face_set in ("skin", "interface"):
+        layer = with_layer(mesh, face_set)
+        faces = {tuple(sorted(f)) for f in mesh.face_sets[face_set].tolist()}
+        owns = np.array([any(tuple(sorted(np.delete(t, k))) in faces for k in range(4))
+                         for t in mesh.tets.tolist()])
+        if face_set == "interface":  # a soft layer: every tet with a node on the interface
+            touch = np.isin(mesh.tets, mesh.face_sets[face_set]).any(axis=1)
+            assert (touch & ~owns).any()
+            owns |= touch
+        owns &= np.isin(mesh.region, (1, 3))
+        changed = layer.region != mesh.region
+        assert owns.any() and np.array_equal(changed, owns)  # exactly the tets on the set
+        name = "skin_layer" if face_set == "skin" else "interface_layer"
+        for side, code in (("left", 1), ("right", 3)):  # each keeps its side
+            assert np.all(layer.region[owns & (mesh.region == code)]
+                          == REGIONS[f"{name}_{side}"])
+        assert np.array_equal(layer.face_sets[face_set], mesh.face_sets[face_set])
+        owned[face_set] = owns
+    both = with_layer(with_layer(mesh, "skin"), "interface")
+    assert np.isin(both.region[owned["skin"]], (6, 7)).all()
+    assert np.isin(both.region[owned["interface"] & ~owned["skin"]], (8, 9)).all()
+    with pytest.raises(ValueError, match="no layer codes for face set 'fixed'"):
+        with_layer(mesh, "fixed")
 
 
 # --- FEBio truth --------------------------------------------------------------------------

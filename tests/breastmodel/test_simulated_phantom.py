@@ -208,10 +208,12 @@ def test_truth_model_from_a_toml_file_takes_any_registered_effect(tmp_path):
         from_toml(f)
 
 
-def test_a_skin_layer_truth_holds_the_skin_up():
+def test_a_layer_truth_holds_the_skin_up_or_lets_the_breast_slide():
     """A truth whose breast tets under the skin are ten times stiffer (the family's
-    ``skin_layer`` physics) solves on the same mesh with those tets relabelled, and the
-    skin sags less than the bulk truth's (our solver, 8 mm mesh, prone: 4.0 -> 2.1 mm)."""
+    ``skin_layer`` physics), or whose breast tets on the muscle are twice as soft
+    (``sliding_layer``), solves on the same mesh with those tets relabelled; the skin sags
+    less than the bulk truth's (our solver, 8 mm mesh, prone: 4.0 -> 2.1 mm), the breast on
+    its soft base more (4.0 -> 5.1 mm)."""
     from dataclasses import replace
 
     from breastmodel.phantom.simulated import anatomy_mesh
@@ -221,19 +223,28 @@ def test_a_skin_layer_truth_holds_the_skin_up():
     mesh = anatomy_mesh(anatomy, size_mm=8.0, voxel_size=2.0)
     nh = {"name": "neo_hookean", "nu": 0.49}
     mats = {1: {**nh, "E": 2.0}, 2: {**nh, "E": 10.0}, 3: {**nh, "E": 2.0}}
-    layer = {**mats, **{REGIONS[k]: {**nh, "E": 20.0}
-                        for k in ("skin_layer_left", "skin_layer_right")}}
+    layers = {"bulk": ({}, {1, 2, 3}),
+              "skin": ({REGIONS[f"skin_layer_{s}"]: {**nh, "E": 20.0} for s in ("left", "right")},
+                       {1, 2, 3, 6, 7}),
+              "interface": ({REGIONS[f"interface_layer_{s}"]: {**nh, "E": 1.0}
+                             for s in ("left", "right")}, {1, 2, 3, 8, 9})}
     effects = {"fixed": {"node_set": "fixed"}}
-    sag = {}
-    for name, m in (("bulk", mats), ("layer", layer)):
-        tm = TruthModel(materials=m, effects=effects, mesh_size_mm=8.0, name=name)
+    sag, models = {}, {}
+    for name, (layer, expected) in layers.items():
+        tm = models[name] = TruthModel(materials={**mats, **layer}, effects=effects,
+                                       mesh_size_mm=8.0, name=name)
         sim = simulate_positions(anatomy, tm, ("prone",), mesh=mesh, progress=False)["prone"]
         codes = set(sim.mesh.region.tolist())
-        assert codes == ({1, 2, 3, 6, 7} if name == "layer" else {1, 2, 3}), codes
+        assert codes == expected, (name, codes)
         skin = sim.mesh.node_sets["skin"]
-        sag[name] = np.linalg.norm(sim.x[skin] - sim.X[skin], axis=1)
-    assert sag["bulk"].max() > 1.0
-    assert sag["layer"].max() < 0.7 * sag["bulk"].max(), (sag["layer"].max(), sag["bulk"].max())
-    bare = replace(mesh, face_sets={k: v for k, v in mesh.face_sets.items() if k != "skin"})
-    with pytest.raises(ValueError, match="has a skin layer, but the mesh has no breast tet"):
-        simulate_positions(anatomy, tm, ("prone",), mesh=bare, progress=False)
+        sag[name] = np.linalg.norm(sim.x[skin] - sim.X[skin], axis=1).max()
+    assert sag["bulk"] > 1.0
+    assert sag["skin"] < 0.7 * sag["bulk"], sag
+    assert sag["interface"] > 1.15 * sag["bulk"], sag
+    for face_set in ("skin", "interface"):
+        bare = replace(mesh, face_sets={k: v for k, v in mesh.face_sets.items()
+                                        if k != face_set})
+        with pytest.raises(ValueError, match=f"layer on face set '{face_set}', but the mesh "
+                                             "has no breast tet"):
+            simulate_positions(anatomy, models[face_set], ("prone",), mesh=bare,
+                               progress=False)
