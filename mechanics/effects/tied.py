@@ -68,12 +68,17 @@ class Tied(Effect):
         nodes = np.concatenate([self.slaves[:, None], mnodes], axis=1)
         dofs = node_dofs(nodes)
         q = x[nodes].reshape(S, 12)
-        k = self.values["penalty"] * w
-        t = k[:, None] * np.einsum("sij,sj->si", B, q)  # spring force on the slave, mN
+        P = self.springs(X, w)
+        t = np.einsum("sij,sj->si", P, np.einsum("sij,sj->si", B, q))  # on the slave, mN
         force = np.zeros(3 * len(x))
         np.add.at(force, dofs.ravel(), np.einsum("sij,si->sj", B, t).ravel())
-        K = k[:, None, None] * (B.transpose(0, 2, 1) @ B)
+        K = B.transpose(0, 2, 1) @ P @ B
         return Contribution(force.reshape(-1, 3), *coo_blocks(dofs, dofs, K))
+
+    def springs(self, X, w):
+        """(S, 3, 3) stiffness of each slave node's spring, mN/mm: the penalty times its
+        tributary area, the same in every direction."""
+        return (self.values["penalty"] * w)[:, None, None] * np.eye(3)
 
     def to_febio(self, feb):
         """Split interface: FEBio ``tied-elastic`` contact (penalty per area, kPa/mm, no

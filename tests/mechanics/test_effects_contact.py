@@ -544,3 +544,46 @@ def test_a_pairing_that_flips_back_across_a_crease_is_held_until_the_step_ends(h
         assert changed.any() and not held.any()
     eff.begin_step(X, X)
     assert np.array_equal(pairing(X), at_rest)
+
+
+@pytest.mark.parametrize("shear", [0.1, 1.0])
+def test_compliant_interface_shears_by_the_traction_over_its_stiffness(shear):
+    """A stiff block on a stiff slab, gravity tilted by 30 deg, held by the compliant
+    interface alone: the block's base slides over the slab by the downhill traction over
+    ``shear`` and sinks into it by the normal traction over ``penalty`` (area-weighted mean
+    gaps, exact by equilibrium when the springs split normal and shear right); tied, it
+    slides by the traction over the penalty only."""
+    from mechanics.effects._contact import nodal_areas
+
+    mesh = stack(((6, 3, 1), (30.0, 15.0, 4.0), (-15.0, 0.0, 0.0)),
+                 ((2, 2, 1), (10.0, 10.0, 5.0), (0.0, 0.0, 4.0)))
+    upper, faces = mesh.node_sets["upper"], mesh.face_sets["interface"]
+    base = np.unique(faces)
+    w = nodal_areas(mesh.nodes, faces, base)
+    # the slab's node under each base node (the two grids coincide on the interface)
+    under = np.argmin(np.linalg.norm(mesh.nodes[base][:, None] - mesh.nodes[None], axis=2)
+                      + 1e9 * np.isin(np.arange(mesh.n_nodes), upper)[None], axis=1)
+    assert np.allclose(mesh.nodes[under], mesh.nodes[base]) and w.sum() == pytest.approx(100.0)
+    a, density, penalty = np.radians(30.0), 1e4, 1e3
+    gravity = {"direction": (np.sin(a), 0.0, -np.cos(a)), "density": density}
+    W = density * 9.81e-6 * 500.0  # mN over the block's 100 mm^2
+    for name, table in (("compliant_interface", {"shear": shear, "penalty": penalty}),
+                        ("tied", {"penalty": penalty})):
+        model = build_model(mesh, materials(1e3, 1e3), {
+            "fixed": {"node_set": "bottom"}, "gravity": gravity, name: table})
+        st = solve(model, options=OPTS)
+        gap = w @ (st.u[base] - st.u[under]) / w.sum()
+        slide = W * np.sin(a) / 100.0 / (shear if name != "tied" else penalty)
+        assert gap[0] == pytest.approx(slide, rel=1e-6) and abs(gap[1]) < 1e-9 * slide
+        assert -gap[2] == pytest.approx(W * np.cos(a) / 100.0 / penalty, rel=1e-6)
+
+
+def test_compliant_interface_is_not_written_to_febio_as_tied():
+    from mechanics.febio import FebioUnsupported, feb_text
+
+    mesh = stack(((2, 2, 1), (10.0, 10.0, 4.0), (0.0, 0.0, 0.0)),
+                 ((2, 2, 1), (10.0, 10.0, 5.0), (0.0, 0.0, 4.0)))
+    model = build_model(mesh, materials(1e3, 1e3), {"fixed": {"node_set": "bottom"},
+                                                    "compliant_interface": {"shear": 0.1}})
+    with pytest.raises(FebioUnsupported, match="'compliant_interface'.*one penalty"):
+        feb_text(model, approximate=True)
