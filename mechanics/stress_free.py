@@ -159,12 +159,21 @@ class _Anderson:
 
 def _next_estimate(model: Model, X: np.ndarray, f: np.ndarray, mixing: _Anderson) -> np.ndarray:
     """The next reference positions (N, 3) mm: the mixed fixed-point step, or the plain one
-    (and a fresh history) where the mixed one inverts an element."""
+    (and a fresh history) where the mixed one inverts an element, halved (at most 6 times)
+    while it still does (a breast sliding on a compliant interface: the plain step folded
+    a tet at the rim of a suite subject's breast)."""
     v = X.reshape(-1)
     X_new = mixing.step(v, f).reshape(-1, 3)
     if _inverted(model, X_new):
-        X_new = (v + f).reshape(-1, 3)
         mixing.reset()
+        step = 1.0
+        X_new = (v + f).reshape(-1, 3)
+        while _inverted(model, X_new) and step > 1.0 / 32:
+            step *= 0.5
+            X_new = (v + step * f).reshape(-1, 3)
+        if step < 1.0:
+            log.warning("inverse: the fixed-point step inverts an element; %g of it taken",
+                        step)
     return X_new
 
 

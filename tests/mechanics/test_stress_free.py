@@ -82,3 +82,23 @@ def test_inverse_gives_up_after_repeated_failed_forward_solves(truth, monkeypatc
     with pytest.raises(SolverError, match="no equilibrium"):
         inverse_fixed_point(model, x_loaded, tol=1e-9, max_iter=50, max_failures=3)
     assert len(calls) == 1 + 4
+
+
+def test_a_fixed_point_step_that_inverts_an_element_is_halved_until_none_does():
+    """The inverse's next estimate never folds the mesh: a plain step that would push a tet's
+    apex through its base (from z = 1 to -1) is halved until the tet keeps its orientation,
+    and the step is taken along the same direction."""
+    from types import SimpleNamespace
+
+    from mechanics.mesh import Mesh
+    from mechanics.stress_free import _Anderson, _next_estimate
+
+    X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    model = SimpleNamespace(mesh=Mesh(X, [[0, 1, 2, 3]], [1]))
+    f = np.zeros(12)
+    f[11] = -2.0  # the apex to z = -1
+    X_new = _next_estimate(model, X, f, _Anderson(0))
+    assert model.mesh.signed_volumes(X_new)[0] > 0
+    assert np.allclose(X_new[:3], X[:3]) and X_new[3, 2] == pytest.approx(0.5)  # half a step
+    f[11] = -0.5  # a step that keeps the tet is taken whole
+    assert _next_estimate(model, X, f, _Anderson(0))[3, 2] == pytest.approx(0.5)
