@@ -159,7 +159,7 @@ class _Anderson:
 
 def _next_estimate(model: Model, X: np.ndarray, f: np.ndarray, mixing: _Anderson) -> np.ndarray:
     """The next reference positions (N, 3) mm: the mixed fixed-point step, or the plain one
-    (and a fresh history) where the mixed one inverts an element, halved (at most 6 times)
+    (and a fresh history) where the mixed one inverts an element, halved (at most 5 times)
     while it still does (a breast sliding on a compliant interface: the plain step folded
     a tet at the rim of a suite subject's breast)."""
     v = X.reshape(-1)

@@ -37,8 +37,8 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     settings : ``{"solver", "stress_free", "positions"}``
     budget : charged before every forward solve (default: unlimited)
     start : ``{"X": (N, 3), "u": {position: (N, 3)}}`` a nearby model's solution, mm: the
-        stress-free inverse and every position start from it (ignored when the model's mesh
-        has another node count, e.g. a split interface)
+        stress-free inverse and every position start from it (on a split interface the breast
+        copies of the interface nodes start where their originals are)
     keep_state : also return ``X`` and ``u`` per position (a later warm start)
 
     Returns
@@ -54,6 +54,7 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     from breastmodel.pipeline.problem import (
         load_problem,
         model_mesh,
+        on_mesh,
         predict_position,
         score_position,
         skin_nodes,
@@ -64,8 +65,11 @@ def evaluate_model(model: Mapping[str, Any], problem_dir: str | Path,
     budget = budget or Budget(10**9, math.inf)
     problem = load_problem(problem_dir)
     start = start or {}
-    if "X" in start and len(start["X"]) != model_mesh(problem, model).n_nodes:
-        start = {}  # another mesh (a split interface added or removed): no warm start
+    if "X" in start:  # a split interface added or removed: the start moves with it
+        n = model_mesh(problem, model).n_nodes
+        moved = {"X": on_mesh(problem, start["X"], n),
+                 "u": {k: on_mesh(problem, v, n) for k, v in start.get("u", {}).items()}}
+        start = moved if moved["X"] is not None else {}
     u_start = start.get("u", {})
     sf_start = (np.asarray(start["X"]), u_start.get(problem.reference)) if "X" in start \
         else None

@@ -96,6 +96,23 @@ def skin_nodes(problem: Problem, n_nodes: int) -> np.ndarray:
     return new_id[nodes]
 
 
+def on_mesh(problem: Problem, a: np.ndarray, n_nodes: int) -> np.ndarray | None:
+    """Per-node values ``a`` (N, ...) of the conforming or split mesh on the mesh with
+    ``n_nodes`` nodes: as they are, extended to a split interface (each breast copy takes its
+    original's value: both sides where they were bonded), cut back to the conforming mesh,
+    or None where ``a`` fits neither."""
+    a = np.asarray(a)
+    n_conf = problem.mesh.n_nodes
+    if len(a) == n_nodes:
+        return a
+    if len(a) == n_conf and n_nodes == _split_mesh(problem).n_nodes:
+        shared = np.unique(np.asarray(problem.mesh.face_sets["interface"]))
+        return np.concatenate([a, a[shared]])
+    if n_nodes == n_conf and len(a) == _split_mesh(problem).n_nodes:
+        return a[:n_conf]
+    return None
+
+
 def mesh_of(problem: Problem, n_nodes: int):
     """The problem mesh (conforming or split) that has ``n_nodes`` nodes."""
     if n_nodes == problem.mesh.n_nodes:
