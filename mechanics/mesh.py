@@ -33,7 +33,7 @@ REGIONS: Mapping[str, int] = MappingProxyType(
     }
 )
 BREAST_REGIONS = (1, 3, 4, 5, 6, 7, 8, 9)
-#: Face set -> the codes (left, right) of the breast tets that own one of its faces, see
+#: Face set -> the codes (left, right) of the layer of breast tets on it, see
 #: :func:`with_layer`.
 LAYER_REGIONS: Mapping[str, tuple[int, int]] = MappingProxyType({
     "skin": (REGIONS["skin_layer_left"], REGIONS["skin_layer_right"]),

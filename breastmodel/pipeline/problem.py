@@ -38,7 +38,7 @@ log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = [
     "RIM_FADE_MM", "Problem", "evaluate_params", "forget_problem", "landmark_barycentric",
-    "load_problem", "mesh_of", "model_mesh", "move_measured_skin", "position_model",
+    "load_problem", "mesh_of", "model_mesh", "move_measured_skin", "on_mesh", "position_model",
     "skin_nodes", "predict_position", "score_position", "skin_node_regions", "skin_residual",
     "solver_options", "stress_free_geometry",
 ]
@@ -97,20 +97,16 @@ def skin_nodes(problem: Problem, n_nodes: int) -> np.ndarray:
 
 
 def on_mesh(problem: Problem, a: np.ndarray, n_nodes: int) -> np.ndarray | None:
-    """Per-node values ``a`` (N, ...) of the conforming or split mesh on the mesh with
-    ``n_nodes`` nodes: as they are, extended to a split interface (each breast copy takes its
-    original's value: both sides where they were bonded), cut back to the conforming mesh,
-    or None where ``a`` fits neither."""
+    """Per-node values ``a`` of the conforming or split mesh on the one with ``n_nodes``
+    nodes (a breast copy takes its original's value, as where the sides were bonded), or
+    None where ``a`` fits neither."""
     a = np.asarray(a)
-    n_conf = problem.mesh.n_nodes
     if len(a) == n_nodes:
         return a
-    if len(a) == n_conf and n_nodes == _split_mesh(problem).n_nodes:
-        shared = np.unique(np.asarray(problem.mesh.face_sets["interface"]))
-        return np.concatenate([a, a[shared]])
-    if n_nodes == n_conf and len(a) == _split_mesh(problem).n_nodes:
-        return a[:n_conf]
-    return None
+    n_conf, n_split = problem.mesh.n_nodes, _split_mesh(problem).n_nodes
+    if (len(a), n_nodes) == (n_conf, n_split):
+        return np.concatenate([a, a[np.unique(np.asarray(problem.mesh.face_sets["interface"]))]])
+    return a[:n_conf] if (len(a), n_nodes) == (n_split, n_conf) else None
 
 
 def mesh_of(problem: Problem, n_nodes: int):

@@ -381,3 +381,23 @@ def test_least_squares_stops_once_the_next_step_is_below_its_precision(monkeypat
     assert res["n_simulations"] < full["n_simulations"]
     for name, opt in (("materials.breast_left.E", E_OPT), ("effects.skin.E", S_OPT)):
         assert abs(math.log(res["best"]["params"][name] / opt)) < 0.01
+
+
+def test_a_warm_start_moves_between_the_conforming_and_the_split_mesh():
+    """A conforming solution on the split mesh: each breast copy of an interface node takes
+    its original's value; back on the conforming mesh the copies are dropped."""
+    from breastmodel.phantom.mounds import mound_mesh
+    from breastmodel.pipeline.problem import Problem, _split_mesh, on_mesh
+
+    mesh = mound_mesh(cells=(8, 6, 3, 2))
+    prob = Problem(mesh, {}, {}, {}, "supine")
+    split = _split_mesh(prob)
+    u = np.random.default_rng(0).normal(size=(mesh.n_nodes, 3))
+    on_split = on_mesh(prob, u, split.n_nodes)
+    assert on_split.shape == (split.n_nodes, 3) and np.array_equal(on_split[:mesh.n_nodes], u)
+    # the copies sit where their originals are in the mesh, so take their values
+    d = np.linalg.norm(split.nodes[mesh.n_nodes:, None] - mesh.nodes[None], axis=2)
+    assert np.array_equal(on_split[mesh.n_nodes:], u[np.argmin(d, axis=1)])
+    assert np.array_equal(on_mesh(prob, on_split, mesh.n_nodes), u)
+    assert np.array_equal(on_mesh(prob, u, mesh.n_nodes), u)
+    assert on_mesh(prob, u[:-1], split.n_nodes) is None
