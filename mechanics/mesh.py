@@ -215,15 +215,13 @@ def with_layer(mesh: Mesh, face_set: str) -> Mesh:
                          f"(known: {', '.join(LAYER_REGIONS)})")
     faces = mesh.face_sets.get(face_set, np.zeros((0, 3)))
     faces = np.sort(np.asarray(faces, np.int64), axis=1)
-    owner = np.repeat(np.arange(mesh.n_tets), 4)
-    both = np.vstack([sorted_tet_faces(mesh.tets), faces])
-    _, inv = np.unique(both, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    on_set = np.isin(inv[: len(owner)], inv[len(owner):])
-    layer = np.zeros(mesh.n_tets, bool)
-    layer[owner[on_set]] = True
     if face_set in LAYER_BY_NODE:
-        layer |= np.isin(mesh.tets, faces).any(axis=1)
+        layer = np.isin(mesh.tets, faces).any(axis=1)
+    else:
+        both = np.vstack([sorted_tet_faces(mesh.tets), faces])
+        _, inv = np.unique(both, axis=0, return_inverse=True)
+        inv = inv.ravel()
+        layer = np.isin(inv[: 4 * mesh.n_tets], inv[4 * mesh.n_tets:]).reshape(-1, 4).any(1)
     region = np.array(mesh.region)
     layers = {c for pair in LAYER_REGIONS.values() for c in pair}
     for code in set(BREAST_SIDE) - layers:  # fat and gland, left and right

@@ -50,16 +50,18 @@ class Tied(Effect):
         self._ref = None
 
     def _pairing(self, X):
+        """(muscle nodes, barycentric coordinates, tributary areas, springs) of the slave
+        nodes in the reference ``X``, made once per reference."""
         if self._ref is None or self._ref[0] is not X:
             facet, bary, _ = closest_facets(X[self.slaves], X, self.master)
             w = nodal_areas(X, self.slave_faces, self.slaves)
-            self._ref = (X, self.master[facet], bary, w)
+            self._ref = (X, self.master[facet], bary, w, self.springs(X, w))
         return self._ref[1:]
 
     def contribute(self, X, x, load):
         if not self.split:
             return Contribution.zero(len(x))
-        mnodes, bary, w = self._pairing(X)
+        mnodes, bary, _, P = self._pairing(X)
         S = len(self.slaves)
         B = np.zeros((S, 3, 12))
         B[:, :, 0:3] = np.eye(3)
@@ -68,7 +70,6 @@ class Tied(Effect):
         nodes = np.concatenate([self.slaves[:, None], mnodes], axis=1)
         dofs = node_dofs(nodes)
         q = x[nodes].reshape(S, 12)
-        P = self.springs(X, w)
         t = np.einsum("sij,sj->si", P, np.einsum("sij,sj->si", B, q))  # on the slave, mN
         force = np.zeros(3 * len(x))
         np.add.at(force, dofs.ravel(), np.einsum("sij,si->sj", B, t).ravel())
