@@ -27,6 +27,9 @@ class Tied(Effect):
                     numerical=True),)
     split_interface = True
     excludes = ("sliding",)
+    # the springs stretch by the gap in the deformed configuration (False), or by its change
+    # from the reference (True: the nodes' relative displacement)
+    relative = False
 
     @classmethod
     def variants(cls, view):
@@ -69,7 +72,7 @@ class Tied(Effect):
             B[:, :, 3 + 3 * a:6 + 3 * a] = -bary[:, a, None, None] * np.eye(3)
         nodes = np.concatenate([self.slaves[:, None], mnodes], axis=1)
         dofs = node_dofs(nodes)
-        q = x[nodes].reshape(S, 12)
+        q = (x - X if self.relative else x)[nodes].reshape(S, 12)
         t = np.einsum("sij,sj->si", P, np.einsum("sij,sj->si", B, q))  # on the slave, mN
         force = np.zeros(3 * len(x))
         np.add.at(force, dofs.ravel(), np.einsum("sij,si->sj", B, t).ravel())

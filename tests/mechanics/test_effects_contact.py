@@ -578,6 +578,32 @@ def test_compliant_interface_shears_by_the_traction_over_its_stiffness(shear):
         assert -gap[2] == pytest.approx(W * np.cos(a) / 100.0 / penalty, rel=1e-6)
 
 
+def test_compliant_interface_stress_free_inverse_slides_the_reference_back():
+    """The measured configuration (the mesh) is loaded: the stress-free inverse of the block
+    sliding on a compliant interface converges, and its reference has the block's base moved
+    uphill from the slab by the slide (the layer unsheared there, sheared in the mesh)."""
+    from mechanics.effects._contact import nodal_areas
+    from mechanics.stress_free import inverse_fixed_point
+
+    mesh = stack(((6, 3, 1), (30.0, 15.0, 4.0), (-15.0, 0.0, 0.0)),
+                 ((2, 2, 1), (10.0, 10.0, 5.0), (0.0, 0.0, 4.0)))
+    upper, faces = mesh.node_sets["upper"], mesh.face_sets["interface"]
+    base = np.unique(faces)
+    w = nodal_areas(mesh.nodes, faces, base)
+    under = np.argmin(np.linalg.norm(mesh.nodes[base][:, None] - mesh.nodes[None], axis=2)
+                      + 1e9 * np.isin(np.arange(mesh.n_nodes), upper)[None], axis=1)
+    a, density, shear = np.radians(30.0), 1e4, 0.1
+    model = build_model(mesh, materials(1e3, 1e3), {
+        "fixed": {"node_set": "bottom"},
+        "gravity": {"direction": (np.sin(a), 0.0, -np.cos(a)), "density": density},
+        "compliant_interface": {"shear": shear}})
+    res = inverse_fixed_point(model, mesh.nodes, tol=1e-5, options=OPTS)
+    assert res.converged and len(res.history) <= 10
+    slide = density * 9.81e-6 * 500.0 * np.sin(a) / 100.0 / shear  # 2.45 mm
+    gap = w @ (res.X[base] - res.X[under]) / w.sum()
+    assert gap[0] == pytest.approx(-slide, rel=1e-3) and abs(gap[1]) < 1e-6
+
+
 def test_compliant_interface_is_not_written_to_febio_as_tied():
     from mechanics.febio import FebioUnsupported, feb_text
 
