@@ -546,13 +546,10 @@ def test_a_pairing_that_flips_back_across_a_crease_is_held_until_the_step_ends(h
     assert np.array_equal(pairing(X), at_rest)
 
 
-@pytest.mark.parametrize("shear", [0.1, 1.0])
-def test_compliant_interface_shears_by_the_traction_over_its_stiffness(shear):
-    """A stiff block on a stiff slab, gravity tilted by 30 deg, held by the compliant
-    interface alone: the block's base slides over the slab by the downhill traction over
-    ``shear`` and sinks into it by the normal traction over ``penalty`` (area-weighted mean
-    gaps, exact by equilibrium when the springs split normal and shear right); tied, it
-    slides by the traction over the penalty only."""
+def _block_on_slab():
+    """A 10 x 10 x 5 mm block on a 30 x 15 x 4 mm slab (split interface): the mesh, the
+    block's base nodes, the slab's node under each (the two grids coincide on the
+    interface) and the base nodes' tributary areas (mm^2)."""
     from mechanics.effects._contact import nodal_areas
 
     mesh = stack(((6, 3, 1), (30.0, 15.0, 4.0), (-15.0, 0.0, 0.0)),
@@ -560,10 +557,20 @@ def test_compliant_interface_shears_by_the_traction_over_its_stiffness(shear):
     upper, faces = mesh.node_sets["upper"], mesh.face_sets["interface"]
     base = np.unique(faces)
     w = nodal_areas(mesh.nodes, faces, base)
-    # the slab's node under each base node (the two grids coincide on the interface)
     under = np.argmin(np.linalg.norm(mesh.nodes[base][:, None] - mesh.nodes[None], axis=2)
                       + 1e9 * np.isin(np.arange(mesh.n_nodes), upper)[None], axis=1)
     assert np.allclose(mesh.nodes[under], mesh.nodes[base]) and w.sum() == pytest.approx(100.0)
+    return mesh, base, under, w
+
+
+@pytest.mark.parametrize("shear", [0.1, 1.0])
+def test_compliant_interface_shears_by_the_traction_over_its_stiffness(shear):
+    """A stiff block on a stiff slab, gravity tilted by 30 deg, held by the compliant
+    interface alone: the block's base slides over the slab by the downhill traction over
+    ``shear`` and sinks into it by the normal traction over ``penalty`` (area-weighted mean
+    gaps, exact by equilibrium when the springs split normal and shear right); tied, it
+    slides by the traction over the penalty only."""
+    mesh, base, under, w = _block_on_slab()
     a, density, penalty = np.radians(30.0), 1e4, 1e3
     gravity = {"direction": (np.sin(a), 0.0, -np.cos(a)), "density": density}
     W = density * 9.81e-6 * 500.0  # mN over the block's 100 mm^2
@@ -582,16 +589,9 @@ def test_compliant_interface_stress_free_inverse_slides_the_reference_back():
     """The measured configuration (the mesh) is loaded: the stress-free inverse of the block
     sliding on a compliant interface converges, and its reference has the block's base moved
     uphill from the slab by the slide (the layer unsheared there, sheared in the mesh)."""
-    from mechanics.effects._contact import nodal_areas
     from mechanics.stress_free import inverse_fixed_point
 
-    mesh = stack(((6, 3, 1), (30.0, 15.0, 4.0), (-15.0, 0.0, 0.0)),
-                 ((2, 2, 1), (10.0, 10.0, 5.0), (0.0, 0.0, 4.0)))
-    upper, faces = mesh.node_sets["upper"], mesh.face_sets["interface"]
-    base = np.unique(faces)
-    w = nodal_areas(mesh.nodes, faces, base)
-    under = np.argmin(np.linalg.norm(mesh.nodes[base][:, None] - mesh.nodes[None], axis=2)
-                      + 1e9 * np.isin(np.arange(mesh.n_nodes), upper)[None], axis=1)
+    mesh, base, under, w = _block_on_slab()
     a, density, shear = np.radians(30.0), 1e4, 0.1
     model = build_model(mesh, materials(1e3, 1e3), {
         "fixed": {"node_set": "bottom"},
