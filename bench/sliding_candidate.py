@@ -33,7 +33,8 @@ if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
     sys.path[0] = str(ROOT)
 
 from breastmodel.config import write_json  # noqa: E402
-from breastmodel.phantom.motion import patient_gravity  # noqa: E402
+from breastmodel.phantom.simulated import _position_effects  # noqa: E402
+from breastmodel.phantom.truth_model import TruthModel  # noqa: E402
 from mechanics.effects._interface import split_interface  # noqa: E402
 from mechanics.mesh import BREAST_SIDE, LAYER_REGIONS, Mesh  # noqa: E402
 from mechanics.model import build_model  # noqa: E402
@@ -68,9 +69,9 @@ def _bulk(mats: dict, E: float | None = None) -> dict:
 
 
 def _effects(doc: dict, pos: str, extra: dict | None = None) -> dict:
-    g, _ = patient_gravity(pos)
-    return {**doc["effects"], "gravity": {"direction": g.tolist(), "density": 1000.0,
-                                          "g": 9.81}, **(extra or {})}
+    """The truth's effects and gravity in position ``pos`` (as the truth was solved), plus
+    ``extra``."""
+    return {**_position_effects(TruthModel.from_dict(doc), pos), **(extra or {})}
 
 
 def _cand(shear: float) -> dict:
