@@ -71,37 +71,58 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
     k = min(k, len(tri))
     _, cand = cKDTree(xt.mean(axis=1)).query(p, k=k)
     cand = np.asarray(cand).reshape(len(p), k)
-    a, b, c = xt[cand, 0], xt[cand, 1], xt[cand, 2]  # (S, k, 3)
-    q = p[:, None, :]
-    v0, v1 = b - a, c - a
-    bu, bv, bw = barycentric(q, a, b, c)
+    # per triangle: vertex a, edges ab, ac, bc and their dot products; per (point,
+    # candidate) pair only what involves the point (contiguous gathers: the differences of
+    # strided views of x[tri][cand] were most of this function's time)
+    a = xt[:, 0]
+    e0, e1 = xt[:, 1] - a, xt[:, 2] - a
+    ebc = xt[:, 2] - xt[:, 1]
+    d00, d01, d11 = (np.einsum("ti,ti->t", u, v) for u, v in ((e0, e0), (e0, e1), (e1, e1)))
+    dbc = np.einsum("ti,ti->t", ebc, ebc)
+    E0, E1, Ebc = e0[cand], e1[cand], ebc[cand]  # (S, k, 3)
+    D00, D01, D11 = d00[cand], d01[cand], d11[cand]
+    qa = p[:, None, :] - a[cand]
+    d20, d21 = np.einsum("ski,ski->sk", qa, E0), np.einsum("ski,ski->sk", qa, E1)
+    den = D00 * D11 - D01 * D01
+    bv = (D11 * d20 - D01 * d21) / den
+    bw = (D00 * d21 - D01 * d20) / den
+    bu = 1.0 - bv - bw
     inside = (bu >= 0) & (bv >= 0) & (bw >= 0)
-    proj = a + bv[..., None] * v0 + bw[..., None] * v1
-    d_plane = np.where(inside, np.linalg.norm(q - proj, axis=-1), np.inf)
-    cands = [(d_plane, np.stack([bu, bv, bw], -1))]
-    for i, j in ((0, 1), (1, 2), (2, 0)):
-        s, e = xt[cand, i], xt[cand, j]
-        t = np.clip(np.einsum("ski,ski->sk", q - s, e - s)
-                    / np.einsum("ski,ski->sk", e - s, e - s), 0.0, 1.0)
-        dist = np.linalg.norm(q - (s + t[..., None] * (e - s)), axis=-1)
-        bary = np.zeros(t.shape + (3,))
-        bary[..., i] = 1.0 - t
-        bary[..., j] = t
-        cands.append((dist, bary))
-    dists = np.stack([d for d, _ in cands], axis=-1)  # (S, k, 4)
-    barys = np.stack([b for _, b in cands], axis=-2)  # (S, k, 4, 3)
+
+    def sq(r):
+        return np.einsum("ski,ski->sk", r, r)
+
+    # squared distances (ordered as their roots): to the plane where the projection falls
+    # inside, else to the edges ab, bc, ca (t from their first vertex)
+    d2 = np.empty(bu.shape + (4,))
+    d2[..., 0] = np.where(inside, sq(qa - bv[..., None] * E0 - bw[..., None] * E1), np.inf)
+    ts = np.empty(bu.shape + (3,))
+    ts[..., 0] = np.clip(d20 / D00, 0.0, 1.0)
+    d2[..., 1] = sq(qa - ts[..., 0, None] * E0)
+    qb = qa - E0
+    ts[..., 1] = np.clip(np.einsum("ski,ski->sk", qb, Ebc) / dbc[cand], 0.0, 1.0)
+    d2[..., 2] = sq(qb - ts[..., 1, None] * Ebc)
+    ts[..., 2] = np.clip((D11 - d21) / D11, 0.0, 1.0)
+    d2[..., 3] = sq(qa - (1.0 - ts[..., 2, None]) * E1)
     if normals is not None:
-        nt = np.cross(b - a, c - a)
-        cos = np.einsum("ski,si->sk", nt, normals) / np.maximum(
-            np.linalg.norm(nt, axis=-1), 1e-300)
-        away = cos < min_cos
+        nt = np.cross(e0, e1)  # (T, 3)
+        nt /= np.maximum(np.linalg.norm(nt, axis=1), 1e-300)[:, None]
+        away = np.einsum("ski,si->sk", nt[cand], normals) < min_cos
         away &= ~np.all(away, axis=1, keepdims=True)  # none faces the point: keep them all
-        dists = np.where(away[..., None], np.inf, dists)
-    flat = dists.reshape(len(p), -1)
+        d2[away] = np.inf
+    flat = d2.reshape(len(p), -1)
     best = np.argmin(flat, axis=1)
     rows = np.arange(len(p))
     kk, mm = np.divmod(best, 4)
-    return cand[rows, kk], barys[rows, kk, mm], flat[rows, best]
+    bary = np.zeros((len(p), 3))
+    plane = mm == 0
+    bary[plane] = np.stack([bu, bv, bw], -1)[rows[plane], kk[plane]]
+    for m, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
+        on = mm == m + 1
+        t = ts[rows[on], kk[on], m]
+        bary[on, i] = 1.0 - t
+        bary[on, j] = t
+    return cand[rows, kk], bary, np.sqrt(flat[rows, best])
 
 
 def boundary_edges(tri: np.ndarray) -> np.ndarray:
@@ -141,11 +162,11 @@ def facet_normals(x: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return n / np.linalg.norm(n, axis=1)[:, None]
 
 
-# Map from q = (x_s, x1, x2, x3) (12) to (d, e1, e2) = (x_s - x1, x2 - x1, x3 - x1) (9).
-_L = np.zeros((9, 12))
+#: Map from q = (x_s, x1, x2, x3) (12) to (d, e1, e2) = (x_s - x1, x2 - x1, x3 - x1) (9).
+GAP_EDGES = np.zeros((9, 12))
 for _blk, (_plus, _minus) in enumerate(((0, 1), (2, 1), (3, 1))):
-    _L[3 * _blk:3 * _blk + 3, 3 * _plus:3 * _plus + 3] = np.eye(3)
-    _L[3 * _blk:3 * _blk + 3, 3 * _minus:3 * _minus + 3] -= np.eye(3)
+    GAP_EDGES[3 * _blk:3 * _blk + 3, 3 * _plus:3 * _plus + 3] = np.eye(3)
+    GAP_EDGES[3 * _blk:3 * _blk + 3, 3 * _minus:3 * _minus + 3] -= np.eye(3)
 
 
 def signed_gap(xs: np.ndarray, xa: np.ndarray, *, hessian: bool = True):
@@ -162,6 +183,15 @@ def signed_gap(xs: np.ndarray, xa: np.ndarray, *, hessian: bool = True):
     dg : (S, 12) derivative with respect to (x_s, x1, x2, x3)
     d2g : (S, 12, 12) second derivative, 1/mm (None without ``hessian``)
     """
+    g, dg9, H9 = signed_gap_edges(xs, xa, hessian=hessian)
+    return g, dg9 @ GAP_EDGES, None if H9 is None else GAP_EDGES.T @ H9 @ GAP_EDGES
+
+
+def signed_gap_edges(xs: np.ndarray, xa: np.ndarray, *, hessian: bool = True):
+    """:func:`signed_gap` with its derivatives with respect to (d, e1, e2) = (x_s - x1,
+    x2 - x1, x3 - x1): dg (S, 9) and d2g (S, 9, 9); ``GAP_EDGES`` (9, 12) maps them to
+    (x_s, x1, x2, x3). A caller with its own map to its dofs composes it with
+    ``GAP_EDGES`` once (the 12 x 12 Hessian was a fifth of a sliding contact's time)."""
     d = xs - xa[:, 0]
     e1 = xa[:, 1] - xa[:, 0]
     e2 = xa[:, 2] - xa[:, 0]
@@ -173,9 +203,8 @@ def signed_gap(xs: np.ndarray, xa: np.ndarray, *, hessian: bool = True):
     dvol = np.concatenate([a, np.cross(e2, d), np.cross(d, e1)], axis=1)  # (S, 9)
     dA = np.concatenate([np.zeros_like(a), np.cross(e2, ah), np.cross(ah, e1)], axis=1)
     dg9 = dvol / A[:, None] - (vol / A**2)[:, None] * dA
-    dg = dg9 @ _L
     if not hessian:
-        return g, dg, None
+        return g, dg9, None
     S = len(xs)
     Hv = np.zeros((S, 9, 9))
     Hv[:, 0:3, 3:6] = -skew(e2)
@@ -193,7 +222,7 @@ def signed_gap(xs: np.ndarray, xa: np.ndarray, *, hessian: bool = True):
     H9 = (Hv / A[:, None, None] - (outer + outer.transpose(0, 2, 1)) / (A**2)[:, None, None]
           + (2.0 * vol / A**3)[:, None, None] * np.einsum("si,sj->sij", dA, dA)
           - (vol / A**2)[:, None, None] * HA)
-    return g, dg, _L.T @ H9 @ _L
+    return g, dg9, H9
 
 
 def coo_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray):

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mechanics.effects._contact import nodal_areas
+from mechanics.effects._contact import GAP_EDGES, nodal_areas
 from mechanics.effects.base import Effect
 
 #: Quadrature rules on the slave triangles: barycentric points and weights (sum 1).
@@ -58,6 +58,7 @@ class _InterfaceContact(Effect):
             C[:, 0:3, 3 * b:3 * b + 3] = self.sN[:, b, None, None] * np.eye(3)
         C[:, 3:, 3 * m:] = np.eye(9)
         self._C = C
+        self._C9 = GAP_EDGES @ C  # (P, 9, 3 m + 9): local dofs -> (d, e1, e2) of the gap
         self._w = None
 
     def weights(self, X: np.ndarray) -> np.ndarray:

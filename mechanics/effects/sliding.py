@@ -71,7 +71,7 @@ from mechanics.effects._contact import (
     nodal_areas,
     node_dofs,
     past_boundary,
-    signed_gap,
+    signed_gap_edges,
     summed_blocks,
 )
 from mechanics.effects._contact_points import RULES, _InterfaceContact
@@ -194,8 +194,10 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
 
     # -- normal part -------------------------------------------------------------------
     def _normal(self, X, x, *, hessian=True):
-        """Pairing, gap (with derivatives), normal force fN (P,) mN, weights w (P,) mm^2 and
-        ``on`` (P,) 1.0 for points over the muscle surface, 0.0 for released ones.
+        """Pairing, gap (with derivatives on (d, e1, e2), see
+        :func:`mechanics.effects._contact.signed_gap_edges`), normal force fN (P,) mN,
+        weights w (P,) mm^2 and ``on`` (P,) 1.0 for points over the muscle surface, 0.0 for
+        released ones.
 
         ``hessian`` (the residual and tangent of :meth:`contribute`): a point whose pairing
         flips back to the triangle it had two evaluations before keeps its current triangle
@@ -218,7 +220,7 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
             self._history = (facet, None if self._history is None else self._history[0])
         xm = x[self.master[facet]]
         nodes = np.concatenate([self.sconn, self.master[facet]], axis=1)
-        g, dg, d2g = signed_gap(xp, xm, hessian=hessian)
+        g, dg, d2g = signed_gap_edges(xp, xm, hessian=hessian)  # on (d, e1, e2)
         w = self.weights(X)
         on = 1.0 - past_boundary(xp, xm, self._boundary_edges[facet], tol=self.edge_extension)
         # mN, < 0 in compression; zero off the muscle surface
@@ -307,12 +309,14 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
     # -- residual and tangent ----------------------------------------------------------
     def contribute(self, X, x, load):
         n = len(x)
-        C = self._C
+        C9 = self._C9
         nodes, g, dg, d2g, fN, w, on = self._normal(X, x)
         eps = self.values["penalty"]
-        dgf = (dg[:, None, :] @ C)[:, 0]  # gradient on the local dofs
-        K = (eps * w * on)[:, None, None] * np.einsum("pi,pj->pij", dgf, dgf) \
-            + fN[:, None, None] * (C.transpose(0, 2, 1) @ d2g @ C)
+        dgf = (dg[:, None, :] @ C9)[:, 0]  # gradient on the local dofs
+        # the 9 x 9 matrix on (d, e1, e2) first, then one product with the map to the dofs
+        K9 = (eps * w * on)[:, None, None] * (dg[:, :, None] * dg[:, None, :]) \
+            + fN[:, None, None] * d2g
+        K = C9.transpose(0, 2, 1) @ K9 @ C9
         dofN = node_dofs(nodes)
         fq = fN[:, None] * dgf  # (P, L) force on the local dofs
         rows, cols, Ks = [dofN], [dofN], [K]
@@ -324,7 +328,10 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
             same = np.all(dofT == dofN, axis=1)
             for pts, r, c, k in blocks:
                 on_n = same[pts]
-                K[pts[on_n]] += k[on_n]
+                if len(pts) == len(K):  # every point: one pass, no gather and scatter
+                    K += np.where(on_n[:, None, None], k, 0.0)
+                else:
+                    K[pts[on_n]] += k[on_n]
                 rows.append(r[~on_n])
                 cols.append(c[~on_n])
                 Ks.append(k[~on_n])
