@@ -248,8 +248,10 @@ def summed_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray, n: 
     S, r, c = K.shape
     if S == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+    # csr, not the csc it is built as: SciPy multiplies a csc by a csr by converting the
+    # large right factor to csc (7.5 ms of the 20 ms product for 3.8k points of 18 dofs)
     Er_t = sp.csc_matrix((np.ones(S * r), np.asarray(row_dofs).ravel(), np.arange(S * r + 1)),
-                         shape=(n, S * r))
+                         shape=(n, S * r)).tocsr()
     # blockdiag(K) E_c: row (s, i) holds K[s, i, :] at the columns col_dofs[s]
     KEc = sp.csr_matrix((np.ascontiguousarray(K).ravel(),
                          np.broadcast_to(np.asarray(col_dofs)[:, None, :], (S, r, c)).ravel(),
