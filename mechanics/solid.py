@@ -138,13 +138,17 @@ class Solid:
         # isochoric stiffness of psi(I1bar) laws.
         self.dndn = np.einsum("maJ,maJ->am", self.dN[:, PAIR_A], self.dN[:, PAIR_B])
 
-    def evaluate(self, x: np.ndarray, *, tangent: bool = True, sink=None) -> SolidEval:
+    def evaluate(self, x: np.ndarray, *, tangent: bool = True, sink=None,
+                 tensile_pressure_stiffness: bool = True) -> SolidEval:
         """Internal forces (and element stiffness) at current positions x (N, 3) mm.
 
         With ``sink`` (e.g. :meth:`mechanics.system.Assembly.add_stiffness`), the element
         stiffness goes to ``sink(elements, KT)`` block by block, KT (78, k) the upper
         triangles of the elements ``elements`` (a slice or indices, element-last), and
         ``Kup`` stays None: no mesh-sized array of element matrices is made.
+        ``tensile_pressure_stiffness=False`` leaves the geometric stiffness p d2v/dx2 of
+        the elements in volumetric tension (p > 0) out of the element stiffness, not out
+        of the forces (see ``SolverOptions.tensile_pressure_stiffness_below``).
         Raises :class:`InvalidConfiguration` if an element is inverted or a law is undefined.
         """
         x = np.asarray(x, dtype=np.float64)
@@ -156,7 +160,8 @@ class Solid:
         force = self.node_sum @ fe.reshape(4 * len(self.V0), 3)
         Kup = None
         if tangent:
-            Kup = self._element_stiffness(J, g, v, dv, p_elem, co, generic, sink)
+            Kup = self._element_stiffness(J, g, v, dv, p_elem if tensile_pressure_stiffness
+                                          else np.minimum(p_elem, 0.0), co, generic, sink)
         self._i1_coef = None  # mesh-sized coefficients (f, q: 30 MB at 150k tets)
         return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
 

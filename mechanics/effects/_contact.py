@@ -71,9 +71,37 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
     k = min(k, len(tri))
     _, cand = cKDTree(xt.mean(axis=1)).query(p, k=k)
     cand = np.asarray(cand).reshape(len(p), k)
-    # per triangle: vertex a, edges ab, ac, bc and their dot products; per (point,
-    # candidate) pair only what involves the point (contiguous gathers: the differences of
-    # strided views of x[tri][cand] were most of this function's time)
+    d2, ts, bary_plane, (e0, e1) = _candidate_distances(p, xt, cand)
+    if normals is not None:
+        nt = np.cross(e0, e1)  # (T, 3)
+        nt /= np.maximum(np.linalg.norm(nt, axis=1), 1e-300)[:, None]
+        away = np.einsum("ski,si->sk", nt[cand], normals) < min_cos
+        away &= ~np.all(away, axis=1, keepdims=True)  # none faces the point: keep them all
+        d2[away] = np.inf
+    flat = d2.reshape(len(p), -1)
+    best = np.argmin(flat, axis=1)
+    rows = np.arange(len(p))
+    kk, mm = np.divmod(best, 4)
+    bary = np.zeros((len(p), 3))
+    plane = mm == 0
+    bary[plane] = bary_plane[rows[plane], kk[plane]]
+    for m, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
+        on = mm == m + 1
+        t = ts[rows[on], kk[on], m]
+        bary[on, i] = 1.0 - t
+        bary[on, j] = t
+    return cand[rows, kk], bary, np.sqrt(flat[rows, best])
+
+
+def _candidate_distances(p: np.ndarray, xt: np.ndarray, cand: np.ndarray):
+    """Squared distances (S, k, 4) from points p (S, 3) to their candidate triangles
+    ``xt[cand]``: to the plane where the projection falls inside (else inf), then to the
+    edges ab, bc, ca; the edges' parameters t (S, k, 3) from their first vertex, the
+    projections' barycentric coordinates (S, k, 3) and the triangles' edges ab, ac (T, 3).
+
+    Per triangle: vertex a, edges ab, ac, bc and their dot products; per (point,
+    candidate) pair only what involves the point (contiguous gathers: the differences of
+    strided views of x[tri][cand] were most of :func:`closest_facets`' time)."""
     a = xt[:, 0]
     e0, e1 = xt[:, 1] - a, xt[:, 2] - a
     ebc = xt[:, 2] - xt[:, 1]
@@ -92,9 +120,7 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
     def sq(r):
         return np.einsum("ski,ski->sk", r, r)
 
-    # squared distances (ordered as their roots): to the plane where the projection falls
-    # inside, else to the edges ab, bc, ca (t from their first vertex)
-    d2 = np.empty(bu.shape + (4,))
+    d2 = np.empty(bu.shape + (4,))  # squared: ordered as their roots
     d2[..., 0] = np.where(inside, sq(qa - bv[..., None] * E0 - bw[..., None] * E1), np.inf)
     ts = np.empty(bu.shape + (3,))
     ts[..., 0] = np.clip(d20 / D00, 0.0, 1.0)
@@ -104,25 +130,7 @@ def closest_facets(p: np.ndarray, x: np.ndarray, tri: np.ndarray, *, k: int = 8,
     d2[..., 2] = sq(qb - ts[..., 1, None] * Ebc)
     ts[..., 2] = np.clip((D11 - d21) / D11, 0.0, 1.0)
     d2[..., 3] = sq(qa - (1.0 - ts[..., 2, None]) * E1)
-    if normals is not None:
-        nt = np.cross(e0, e1)  # (T, 3)
-        nt /= np.maximum(np.linalg.norm(nt, axis=1), 1e-300)[:, None]
-        away = np.einsum("ski,si->sk", nt[cand], normals) < min_cos
-        away &= ~np.all(away, axis=1, keepdims=True)  # none faces the point: keep them all
-        d2[away] = np.inf
-    flat = d2.reshape(len(p), -1)
-    best = np.argmin(flat, axis=1)
-    rows = np.arange(len(p))
-    kk, mm = np.divmod(best, 4)
-    bary = np.zeros((len(p), 3))
-    plane = mm == 0
-    bary[plane] = np.stack([bu, bv, bw], -1)[rows[plane], kk[plane]]
-    for m, (i, j) in enumerate(((0, 1), (1, 2), (2, 0))):
-        on = mm == m + 1
-        t = ts[rows[on], kk[on], m]
-        bary[on, i] = 1.0 - t
-        bary[on, j] = t
-    return cand[rows, kk], bary, np.sqrt(flat[rows, best])
+    return d2, ts, np.stack([bu, bv, bw], -1), (e0, e1)
 
 
 def boundary_edges(tri: np.ndarray) -> np.ndarray:

@@ -57,6 +57,18 @@ class SolverOptions:
         once cut back, against 18 iterations and 12 factorisations below 0.05)
     reuse_max_iterations : most GMRES iterations of one reusing solve (each stores a vector
         of the system's size), below the budget above
+    tensile_pressure_stiffness_below : while a step's relative residual is above this, the
+        Newton matrix leaves out the geometric stiffness p d2v/dx2 of the elements whose
+        pressure is tensile (p > 0; the residual keeps it); 0: always the exact tangent.
+        In soft, nearly incompressible tissue under gravity the pressure (rho g h, about
+        0.5 kPa over 5 cm) is several times the shear modulus (0.07-0.1 kPa) and this term
+        makes the tangent indefinite away from equilibrium: the 20k-tet phantom's supine
+        solve took 8 Newton iterations whose full steps inverted 800-2150 elements of one
+        breast (line-search steps of 1.5-6 %); 18 -> 13 iterations without it (prone 15 ->
+        10, tilted 13 -> 12). Leaving out every pressure's term did as well there but
+        failed a warm start of the 0.1 kPa hemisphere (11 -> 51-62 iterations, cut back), the
+        compressive ones alone did worse (supine 26). The first direction from such a
+        matrix that raises the residual ends this for the rest of the step
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
         ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
@@ -109,6 +121,7 @@ class SolverOptions:
     reuse_factor: bool = True
     reuse_below: float | None = None
     reuse_max_iterations: int = 100
+    tensile_pressure_stiffness_below: float = 0.3
     stagnate_after: int = 8
     stagnate_above: float = 1e-3
     singular_shift: float = 1e-2

@@ -62,6 +62,11 @@ class _Newton(_Directions):
         # can reach
         self.exact = False
         self.exact_steps = 0
+        # Newton matrices without the tensile pressure's geometric stiffness (SolverOptions.
+        # tensile_pressure_stiffness_below), set by the iterations of a step
+        self.no_pressure_stiffness = False
+        self.a_modified = False  # the current Newton matrix was made so
+        self.exact_tangent = False  # the rest of the step uses the exact tangent
         self.last_linear_residual = float("nan")  # relative, of the last Newton direction
 
     def _lap(self, phase: str, t0: float, c0: float) -> tuple[float, float]:
@@ -82,7 +87,8 @@ class _Newton(_Directions):
         # is scattered after its evaluation, which measured faster (20k: 30 against 47 ms).
         stream = tangent and len(self.solid.V0) > BLOCK
         asm = self.sys.start() if stream else None
-        ev = self.solid.evaluate(x, tangent=tangent, sink=asm.add_stiffness if stream else None)
+        ev = self.solid.evaluate(x, tangent=tangent, sink=asm.add_stiffness if stream else None,
+                                 tensile_pressure_stiffness=not self.no_pressure_stiffness)
         t0, c0 = self._lap("material", t0, c0)
         if asm is not None:  # the scatter ran inside the solid's evaluation: assembly's time
             for acc, spent in ((self.t, asm.wall), (self.c, asm.cpu)):
