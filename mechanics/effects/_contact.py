@@ -27,11 +27,13 @@ def barycentric(q, a, b, c):
     """Barycentric coordinates (u, v, w) of the projections of points q onto the planes of
     triangles (a, b, c); arrays (..., 3) that broadcast together."""
     v0, v1, v2 = b - a, c - a, q - a
-    d00 = np.einsum("...i,...i->...", v0, v0)
-    d01 = np.einsum("...i,...i->...", v0, v1)
-    d11 = np.einsum("...i,...i->...", v1, v1)
-    d20 = np.einsum("...i,...i->...", v2, v0)
-    d21 = np.einsum("...i,...i->...", v2, v1)
+    return _barycentric_from_dots(*(np.einsum("...i,...i->...", s, t) for s, t in (
+        (v0, v0), (v0, v1), (v1, v1), (v2, v0), (v2, v1))))
+
+
+def _barycentric_from_dots(d00, d01, d11, d20, d21):
+    """:func:`barycentric` from the dot products of the edges ab (0), ac (1) and of q - a
+    (2) with them."""
     den = d00 * d11 - d01 * d01
     v = (d11 * d20 - d01 * d21) / den
     w = (d00 * d21 - d01 * d20) / den
@@ -111,10 +113,7 @@ def _candidate_distances(p: np.ndarray, xt: np.ndarray, cand: np.ndarray):
     D00, D01, D11 = d00[cand], d01[cand], d11[cand]
     qa = p[:, None, :] - a[cand]
     d20, d21 = np.einsum("ski,ski->sk", qa, E0), np.einsum("ski,ski->sk", qa, E1)
-    den = D00 * D11 - D01 * D01
-    bv = (D11 * d20 - D01 * d21) / den
-    bw = (D00 * d21 - D01 * d20) / den
-    bu = 1.0 - bv - bw
+    bu, bv, bw = _barycentric_from_dots(D00, D01, D11, d20, d21)
     inside = (bu >= 0) & (bv >= 0) & (bw >= 0)
 
     def sq(r):
