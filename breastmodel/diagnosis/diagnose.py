@@ -181,6 +181,9 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
         ver = r.get("verified", {})
         vtxt = ("" if not ver else ver.get("error") or
                 ", ".join(f"{p} {v:.2f}" for p, v in ver["mhd_mm"].items()))
+        if r.get("unconfirmed"):
+            vtxt += (f" (not confirmed: worst {r['unconfirmed']['worst_mhd_before_mm']:.2f}"
+                     f" -> {r['unconfirmed']['worst_mhd_after_mm']:.2f})")
         ho = "; ".join(f"{p} {v['rms_before_mm']:.2f}->{v['rms_after_mm']:.2f}"
                        for p, v in (r.get("held_out") or {}).items()) or "n/a"
         rows.append([i, r["name"], r["kind"], r.get("n_parameters", ""),

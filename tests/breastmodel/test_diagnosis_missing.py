@@ -180,6 +180,35 @@ def test_adding_the_effect_lowers_the_worst_position_by_half(hidden_skin, capsys
     assert "+ skin" in capsys.readouterr().out or "skin" in cmp["runs"][1]["label"]
 
 
+def test_a_candidate_whose_re_fit_does_not_lower_the_worst_mhd_is_not_confirmed(monkeypatch):
+    """The nonlinear check decides: a significant candidate whose real re-fit leaves the
+    worst MHD where it was loses its significance, with the reason, and the next
+    significant one is checked; not-significant candidates are never re-fitted."""
+    from types import SimpleNamespace
+
+    import breastmodel.diagnosis.missing as M
+
+    after = {"a": {"prone": 1.0, "supine": 1.12}, "b": {"prone": 0.9, "supine": 0.8}}
+    refits = []
+
+    def fake_verify(c, estimate, *args):
+        refits.append(c.name)
+        return {"mhd_mm": after[c.name], "evaluations": 3}
+
+    monkeypatch.setattr(M, "verify_effect", fake_verify)
+    ranking = [{"name": n, "significant": sig, "measurement": "", "estimate": {}}
+               for n, sig in (("a", True), ("c", False), ("b", True))]
+    cands = [SimpleNamespace(name=n) for n in "abc"]
+    run = SimpleNamespace(config={}, model={})
+    M._verify_best(ranking, cands, run, [], ["prone"], ["prone", "supine"], None,
+                   base_mhd={"prone": 1.0, "supine": 1.10}, verify_top=1, verify_budget=4,
+                   progress=False)
+    assert refits == ["a", "b"]
+    assert not ranking[0]["significant"] and ranking[2]["significant"]
+    assert ranking[0]["unconfirmed"] == {"worst_mhd_before_mm": 1.10, "worst_mhd_after_mm": 1.12}
+    assert "unconfirmed" not in ranking[2] and "verified" not in ranking[1]
+
+
 def test_a_control_without_hidden_effect_reports_noise(tmp_path):
     prob = mound_problem(tmp_path / "problem", BASE, noise_mm=0.1, seed=3)
     run_problem(prob, _config(BASE), tmp_path / "run", progress=False)
