@@ -284,15 +284,6 @@ class Effect:
         converged positions x (N, 3) mm, reached at load factor ``load`` (None: unknown):
         update contact pairings, stick anchors, etc."""
 
-    def evaluation_state(self):
-        """What this effect's evaluations remember from one to the next within a load step
-        (sliding's held pairings), for the solver to undo a trial step exactly with
-        :meth:`restore_evaluation_state`; None: nothing."""
-        return None
-
-    def restore_evaluation_state(self, state) -> None:
-        """Go back to a state :meth:`evaluation_state` returned."""
-
     def path_points(self) -> tuple[float, ...]:
         """Load factors in (0, 1) at which the solver must converge a step, for an effect
         whose state follows the loading path (friction): its history is updated there."""

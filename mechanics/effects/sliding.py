@@ -300,14 +300,6 @@ class Sliding(_FrictionAnchors, _InterfaceContact):
             return
         self._update_anchors(X, x)
 
-    def evaluation_state(self):
-        """The pairings of the last two evaluations and the held ones (see ``hold_flipping``)."""
-        return self._history, None if self._held is None else self._held.copy()
-
-    def restore_evaluation_state(self, state) -> None:
-        self._history, held = state
-        self._held = None if held is None else held.copy()
-
     def reset(self) -> None:
         """Forget friction anchors and multipliers (start of a new solve from scratch)."""
         self.anchor_facet = None

@@ -69,10 +69,8 @@ class SolverOptions:
         breast (line-search steps of 1.5-6 %); 18 -> 13 iterations without it (prone 15 ->
         10, tilted 13 -> 12). Leaving out every pressure's term did as well there but
         failed a warm start of the 0.1 kPa hemisphere (11 -> 51-62 iterations, cut back), the
-        compressive ones alone did worse (supine 26). A direction from such a matrix that
-        raises the residual, at its full, half and quarter length, is undone (the effects'
-        evaluation states with it) and the rest of the step uses the exact tangent
-        (``iteration._after_modified``)
+        compressive ones alone did worse (supine 26). The first direction from such a
+        matrix that raises the residual ends this for the rest of the step
     stagnate_after, stagnate_above : cut a step back early once it has taken
         ``stagnate_after`` iterations and the relative residual is still above
         ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)

@@ -116,14 +116,6 @@ class _Newton(_Directions):
             self._lap("assembly", t0, c0)
         return ev, R, A
 
-    def effect_states(self) -> list:
-        """What the effects' evaluations remember (:meth:`Effect.evaluation_state`)."""
-        return [e.evaluation_state() for e in self.model.effects]
-
-    def restore_effect_states(self, states: list) -> None:
-        for effect, state in zip(self.model.effects, states):
-            effect.restore_evaluation_state(state)
-
     def norms(self, R):
         """||R|| on the free dofs and on the constrained ones (the reactions), mN."""
         rf = float(np.linalg.norm(R[self.free]))

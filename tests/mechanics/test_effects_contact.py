@@ -546,32 +546,6 @@ def test_a_pairing_that_flips_back_across_a_crease_is_held_until_the_step_ends(h
     assert np.array_equal(pairing(X), at_rest)
 
 
-def test_restoring_the_evaluation_state_forgets_the_trials_pairings():
-    """The solver undoes a trial step with ``evaluation_state`` / ``restore_evaluation_state``
-    (``iteration._after_modified``): the trial's flips are no longer held, and the
-    contribution at the state before equals the one first evaluated there."""
-    from mechanics.effects import EFFECTS
-
-    mesh = stack(((4, 4, 1), (4.0, 4.0, 1.0), (0, 0, 0)), ((3, 3, 1), (4.0, 4.0, 1.0), (0, 0, 1)))
-    X = mesh.nodes.copy()
-    lower_top = (np.arange(len(X)) < 50) & (np.abs(X[:, 2] - 1.0) < 1e-9)
-    X[lower_top, 2] += 0.2 * np.maximum(X[lower_top, 0] - 2.0, 0.0)  # the crease above
-    mesh = Mesh(X, mesh.tets, mesh.region, node_sets=mesh.node_sets, face_sets=mesh.face_sets)
-    eff = EFFECTS["sliding"](mesh, friction=0.1)
-    moved = X.copy()
-    moved[mesh.node_sets["upper"], 0] += 1.5
-    eff.begin_step(X, X)
-    first = eff.contribute(X, X, 1.0)
-    saved = eff.evaluation_state()
-    eff.contribute(X, moved, 1.0)
-    held = eff.contribute(X, X, 1.0)  # the trial's flips are held now
-    assert not np.allclose(held.force, first.force)
-    eff.restore_evaluation_state(saved)
-    again = eff.contribute(X, X, 1.0)
-    np.testing.assert_array_equal(again.force, first.force)
-    np.testing.assert_array_equal(again.vals, first.vals)
-
-
 def _block_on_slab():
     """A 10 x 10 x 5 mm block on a 30 x 15 x 4 mm slab (split interface): the mesh, the
     block's base nodes, the slab's node under each (the two grids coincide on the
