@@ -169,8 +169,8 @@ def _after_modified(nw: _Newton, accepted, u, du, lam, r0: float, rel: float, en
 def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
     """Newton iterations of one load step from ``u`` (the predictor; ``u_start`` the
     converged displacement the step starts from). Returns (ok, u, ev, reason); where the
-    step fails, u is its iterate of the lowest relative residual (where its load is tried
-    again after the cut-back's sub-steps, see ``stepping._predictor``)."""
+    step fails, u is its iterate of the lowest relative residual (the predictor of the
+    steps that follow a cut-back, see ``stepping._predictor``)."""
     best: list = [np.inf, u]
     ok, u, ev, reason = _iterate(nw, u, lam, ev, R, A, entry, u_start, best)
     return ok, (u if ok else best[1]), ev, reason

@@ -92,7 +92,7 @@ def _predictor(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     of its first; a step to 1 that stagnated at 5 % of its first residual starts there).
     Measured against the extrapolation (Newton iterations): ``bench/effects_box.py`` on the
     five suite meshes 1449 -> 1352, cut-backs 21 -> 18, 135/135 converged either way; the
-    20k phantom's supine solve without friction 32 -> 29, without fascia 47 -> 47; the 17k
+    20k phantom's supine solve without friction 32 -> 27, without fascia 47 -> 47; the 17k
     suite mesh's softest corner 60 -> 62; 0.05-0.2 kPa hemispheres of 54-1536 tets
     2235 -> 2250. Starting every sub-step up to that load on the line towards the best
     iterate did better on the box (1220) but took the phantom's two solves to 111 and 61: at
@@ -219,8 +219,7 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
     while path.lam < 1.0 - 1e-12:
         new_lam = _next_load(path, stops)
         ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, options.predictor)
-        if not ok and options.predictor == "converged" and path.prev is not None \
-                and entry["predictor"] == "converged":
+        if not ok and options.predictor == "converged" and path.prev is not None:
             # the same step once more from the extrapolation before cutting back: the
             # converged state is the better start on the softest moduli, the extrapolation
             # near a Gent fascia's limit stretch (bench/step_control.py)
