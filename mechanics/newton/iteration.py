@@ -168,17 +168,7 @@ def _after_modified(nw: _Newton, accepted, u, du, lam, r0: float, rel: float, en
 
 def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
     """Newton iterations of one load step from ``u`` (the predictor; ``u_start`` the
-    converged displacement the step starts from). Returns (ok, u, ev, reason); where the
-    step fails, u is its iterate of the lowest relative residual (the predictor of the
-    steps that follow a cut-back, see ``stepping._predictor``)."""
-    best: list = [np.inf, u]
-    ok, u, ev, reason = _iterate(nw, u, lam, ev, R, A, entry, u_start, best)
-    return ok, (u if ok else best[1]), ev, reason
-
-
-def _iterate(nw: _Newton, u, lam, ev, R, A, entry, u_start, best: list):
-    """:func:`_newton`'s iterations; ``best`` becomes [relative residual, iterate] of its
-    best iterate."""
+    converged displacement the step starts from). Returns (ok, u, ev, reason)."""
     opt = nw.opt
     rf, rc = nw.norms(R)
     r0 = rf
@@ -196,8 +186,6 @@ def _iterate(nw: _Newton, u, lam, ev, R, A, entry, u_start, best: list):
         ref = max(rc, r0, 1e-300)
         rel = rf / ref
         entry["residuals"].append(rel)
-        if rel < best[0]:
-            best[:] = rel, u
         if opt.progress:
             log.info("  load %.4f iteration %d: relative residual %.3e", lam, it, rel)
         if rel <= opt.tol:

@@ -33,9 +33,7 @@ class SolverOptions:
         than one equilibrium: from the same converged state at load 0.25 the two
         predictors converge at 0.5 to states up to 0.52 mm apart (56 nodes over 0.1 mm);
         the branch the converged state follows ends near 0.749 (every step beyond stalls
-        at a relative residual of about 0.05, as at a fold), the other reaches full load.
-        After a cut-back either gives way, up to the load of the failed step, to the line
-        towards that step's best iterate (``stepping._predictor``)
+        at a relative residual of about 0.05, as at a fold), the other reaches full load
     first_inversion_shrink : where > 0, a first step from rest whose first Newton direction
         inverts an element unless scaled by eta (the line search's largest valid length) is
         cut back at once to ``eta * first_inversion_shrink`` of its load instead of being

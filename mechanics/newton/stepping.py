@@ -23,11 +23,6 @@ from mechanics.state import State
 log = logging.getLogger("mechanics.solver")
 
 
-#: a failed step whose best iterate reached this fraction of its first iterate's residual
-#: predicts the steps that follow its cut-back (see :func:`_predictor`)
-_FAILED_PREDICTS_BELOW = 0.25
-
-
 @dataclass
 class _Path:
     """The load path of one solve so far: the last converged load and displacement, the
@@ -40,7 +35,6 @@ class _Path:
     prev: tuple | None = None  # (lam, u) of the converged step before the last one
     first: tuple | None = None  # (lam, u) of the first converged step
     last_ev: object = None
-    failed: tuple | None = None  # (load, best iterate) of a failed step ahead of the path
     cutbacks: int = 0
     just_cut: bool = False
     steps: list[dict] = field(default_factory=list)
@@ -81,31 +75,20 @@ def _next_load(path: _Path, stops: list[float]) -> float:
     return new_lam
 
 
-def _predictor(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
+def _predictor(nw: _Newton, path: _Path, new_lam: float, guess, kind: str) -> np.ndarray:
     """The step's first iterate (``kind``, see ``SolverOptions.predictor``): the last
     converged state moved along the initial guess by the load increment (the guess, a nearby
     problem's solution, stands for the path ``load * guess``), or without a guess the
     converged state itself; with "secant" the last two converged states extrapolated; the
-    constrained dofs at their scaled targets. After a cut-back, up to the load of the step
-    that failed, the line from the converged state to that step's best iterate (where its
-    residual fell to ``_FAILED_PREDICTS_BELOW`` of its first) instead, whatever ``kind``: a step
-    to 1 that stagnated at 0.05 is retried from there once the half step has converged.
-    Measured (``bench/effects_box.py`` on the five suite meshes, 135/135 converged either
-    way): 1449 -> 1220 Newton iterations, 21 -> 12 cut-backs (with a half instead of a
-    quarter: 1253 and 13, and a 0.1 kPa hemisphere of 384 tets 43 -> 52: its failed step's
-    best iterate, at a third of the residual, was on the way to nowhere); the 17k-tet suite
-    mesh's softest corner 60 -> 53. Returns the iterate and the predictor's name for the log."""
-    lam, u, prev, failed = path.lam, path.u, path.prev, path.failed
+    constrained dofs at their scaled targets."""
+    lam, u, prev = path.lam, path.u, path.prev
     u_try = u.copy()
-    if failed is not None and lam < new_lam <= failed[0] + 1e-12:
-        u_try = u + (new_lam - lam) / (failed[0] - lam) * (failed[1] - u)
-        kind = "failed step"
-    elif prev is not None and lam > prev[0] and kind == "secant":
+    if prev is not None and lam > prev[0] and kind == "secant":
         u_try = u + (new_lam - lam) / (lam - prev[0]) * (u - prev[1])
     elif guess is not None:
         u_try = u + (new_lam - lam) * guess
     u_try[nw.fixed] = new_lam * nw.target[nw.fixed]
-    return u_try, kind
+    return u_try
 
 
 def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
@@ -121,7 +104,8 @@ def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     entry = {"step": len(path.steps) + 1, "load": new_lam, "newton": 0, "residuals": [],
              "converged": False, "cutback": None}
     nw.trace = entry["linear"] = []
-    u_try, entry["predictor"] = _predictor(nw, path, new_lam, guess, kind)
+    entry["predictor"] = kind
+    u_try = _predictor(nw, path, new_lam, guess, kind)
     try:
         ev, R, A = nw.evaluate(u_try, new_lam, tangent=True)
     except InvalidConfiguration:
@@ -150,8 +134,6 @@ def _advance(path: _Path, new_lam: float, u, ev, entry: dict, opt: SolverOptions
     at most ``grow_below`` iterations (not right after a cut-back)."""
     path.prev = (path.lam, path.u)
     path.lam, path.u, path.last_ev = new_lam, u, ev
-    if path.failed is not None and new_lam >= path.failed[0] - 1e-12:
-        path.failed = None
     if path.first is None:
         path.first = (path.lam, path.u)
     if entry["newton"] <= opt.grow_below and not path.just_cut:
@@ -226,9 +208,6 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
             _advance(path, new_lam, u_try, ev, entry, options)
         else:
             _cut_back(nw, path, new_lam, entry, t_start, rss_start)
-            res = entry["residuals"]
-            useful = len(res) > 1 and min(res[1:]) <= _FAILED_PREDICTS_BELOW * res[0]
-            path.failed = (new_lam, u_try) if useful else None
     st = _state(nw, path, True, path.last_ev, t_start, rss_start)
     wall = time.perf_counter() - t_start
     return replace(st, wall_time=wall, stats={**st.stats, "wall_s": wall})

@@ -143,24 +143,6 @@ def test_a_guess_from_a_ten_times_stiffer_model_takes_the_whole_load_in_one_step
     np.testing.assert_allclose(warm.u, cold.u, atol=1e-8 * np.abs(cold.u).max())
 
 
-def test_a_failed_step_s_best_iterate_predicts_the_steps_after_its_cut_back():
-    """The 0.1 kPa hemisphere in one step: the step to full load fails, but its best iterate
-    is kept, and the half step and the retry of the full one start on the line towards it;
-    the equilibrium is the one reached along another path."""
-    mesh = hemisphere(60.0, 4)
-    model = build_model(mesh, {1: {"name": "neo_hookean", "E": 0.1, "nu": 0.49}},
-                        {"gravity": {"direction": (0, 0, -1)}, "fixed": {"node_set": "fixed"}})
-    one = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10))
-    first, half, again = one.log[:3]
-    assert not first["converged"] and first["load"] == 1.0
-    assert min(first["residuals"][1:]) <= 0.25 * first["residuals"][0]
-    assert (half["load"], half["predictor"], half["converged"]) == (0.5, "failed step", True)
-    assert (again["load"], again["predictor"]) == (1.0, "failed step")
-    four = solve(model, options=SolverOptions(linear_solver="scipy", tol=1e-10,
-                                              initial_steps=4))
-    np.testing.assert_allclose(one.u, four.u, atol=1e-7 * np.abs(four.u).max())
-
-
 def test_newton_matrices_without_tensile_pressure_stiffness_reach_the_same_equilibrium():
     """Away from equilibrium the Newton matrix may leave out the geometric stiffness of
     tensile pressure (SolverOptions.tensile_pressure_stiffness_below): the solid's forces are
