@@ -273,10 +273,11 @@ def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, ob
     A candidate whose re-fit does not lower the worst MHD over the positions below the
     fitted model's (``base_mhd``) is not confirmed: it loses its significance (its
     ``unconfirmed`` entry says why) and the next significant candidate is checked, at most
-    ``2 * verify_top`` re-fits in all. On the FEBio diagnosis matrix the one answer whose
-    re-fit raised the worst MHD was a wrong one (a weak gland, answered by a compliant
-    interface: 1.10 -> 1.12 mm; another, a sliding layer answered by Gent stiffening, 1.33 ->
-    1.36), while every right answer lowered it (by 2-68 %)."""
+    ``2 * verify_top`` re-fits in all; a re-fit that fails leaves the candidate as it was.
+    On the FEBio diagnosis matrix the two answers whose re-fits raised the worst MHD were
+    wrong (a weak gland answered by a compliant interface: 1.10 -> 1.12 mm; a sliding layer
+    answered by Gent stiffening: 1.33 -> 1.36), while every right answer lowered it (by
+    2-68 %)."""
     cfg, model = run.config, run.model
     by_name = {c.name: c for c in candidates}
     confirmed = tried = 0
