@@ -293,11 +293,12 @@ def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, ob
                                verify_budget, progress)
         after = r["verified"].get("mhd_mm") or {}
         common = [p for p in after if p in base_mhd]
-        if common and max(after[p] for p in common) >= max(base_mhd[p] for p in common):
-            r["significant"] = False
-            r["unconfirmed"] = {"worst_mhd_before_mm": max(base_mhd[p] for p in common),
-                                "worst_mhd_after_mm": max(after[p] for p in common)}
-            continue
+        if common:
+            worst = {"worst_mhd_before_mm": max(base_mhd[p] for p in common),
+                     "worst_mhd_after_mm": max(after[p] for p in common)}
+            if worst["worst_mhd_after_mm"] >= worst["worst_mhd_before_mm"]:
+                r["significant"], r["unconfirmed"] = False, worst
+                continue
         confirmed += 1
 
 
