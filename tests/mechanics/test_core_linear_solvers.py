@@ -124,6 +124,31 @@ print("ok")
     assert done.stdout.strip().endswith("ok")
 
 
+def test_pardiso_reports_each_analysed_matrix_s_own_factor():
+    """The factor's nonzeros and operation count (which price a factorisation against GMRES
+    iterations, ``factor_worth``) are those of the matrix last analysed, not of the first
+    one the handle saw: a small, a large and the small system again, each against a
+    handle of its own."""
+    pytest.importorskip("pypardiso")
+    import mechanics.pardiso as P
+
+    small, large = _saddle(4)[0], _saddle(8)[0]
+    seen = []
+    for U in (small, large, small):
+        lin = PardisoSolver(threads=1)
+        lin.factorize(U)
+        seen.append((lin._h.factor_nonzeros, lin._h.factor_flops, lin.factor_worth))
+    P._POOL.handles = {}  # fresh handles: one analysis each
+    alone = []
+    for U in (small, large):
+        lin = PardisoSolver(threads=1)
+        lin.factorize(U)
+        alone.append((lin._h.factor_nonzeros, lin._h.factor_flops, lin.factor_worth))
+        P._POOL.handles = {}
+    assert seen == [alone[0], alone[1], alone[0]]
+    assert alone[1][0] > 2 * alone[0][0]
+
+
 def test_pardiso_on_two_threads_gives_the_same_bits_every_time(monkeypatch):
     """Same matrix, same thread count, same solution to the last bit (MKL's conditional
     numerical reproducibility, iparm 34): without it, 30 factorisations of this Laplacian
