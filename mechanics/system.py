@@ -131,21 +131,6 @@ class ReducedSystem:
             asm.add_stiffness(slice(s, s + BLOCK), Kup[s:s + BLOCK].T)
         return asm.matrix(dv, pp_diag)
 
-    def extra_upper(self, rows, cols, vals, *, symmetric: bool) -> sp.csr_matrix | None:
-        """Effect tangent entries (dof numbering) restricted to free dofs.
-
-        Symmetric: the upper triangle only; else the full matrix (both in reduced numbering).
-        """
-        if len(vals) == 0:
-            return None
-        r, c = self.fi[np.asarray(rows)], self.fi[np.asarray(cols)]
-        keep = (r >= 0) & (c >= 0)
-        r, c, v = r[keep], c[keep], np.asarray(vals, float)[keep]
-        if symmetric:
-            up = r <= c
-            r, c, v = r[up], c[up], v[up]
-        return sp.coo_matrix((v, (r, c)), shape=(self.n, self.n)).tocsr()
-
 
 class Assembly:
     """The upper-triangle entries of one Newton matrix, summed block by block of elements,
@@ -212,34 +197,5 @@ def _locate(uniq: np.ndarray, r: np.ndarray, c: np.ndarray, n: int) -> np.ndarra
 
 
 def full_from_upper(U: sp.csr_matrix) -> sp.csr_matrix:
-    """Symmetric full matrix from its upper triangle.
-
-    The solver calls this at every evaluation of an unsymmetric model (friction) with
-    matrices of one pattern: from the second call with an equal pattern on, the full pattern
-    and the gather map from the upper entries are reused and each call is one comparison of
-    the index arrays and one gather (measured 20k tets: 9 ms -> 2 ms).
-    """
-    plan = next((c[2] for c in _FULL_CACHE if len(c[1]) == U.nnz and len(c[0]) == len(U.indptr)
-                 and np.array_equal(c[0], U.indptr) and np.array_equal(c[1], U.indices)), None)
-    if plan is None:
-        if len(_FULL_CACHE) > 4:
-            _FULL_CACHE.clear()
-        _FULL_CACHE.append((U.indptr.copy(), U.indices.copy(), []))  # map at the 2nd sighting
-        return (U + sp.triu(U, k=1, format="csr").T).tocsr()
-    if not plan:
-        rows = np.repeat(np.arange(U.shape[0]), np.diff(U.indptr))
-        if np.any(U.indices < rows):  # not an upper triangle: no map
-            return (U + sp.triu(U, k=1, format="csr").T).tocsr()
-        Up = sp.csr_matrix((np.arange(1, U.nnz + 1, dtype=float), U.indices, U.indptr),
-                           shape=U.shape)
-        F = (Up + sp.triu(Up, k=1, format="csr").T).tocsr()
-        F.sort_indices()
-        # every full entry is one upper entry (diagonal, upper, or mirrored strict upper)
-        plan.extend((F.data.astype(np.int64) - 1, F.indices, F.indptr))
-    take, indices, indptr = plan
-    return sp.csr_matrix((U.data[take], indices, indptr), shape=U.shape)
-
-
-#: full_from_upper's patterns: (upper indptr, upper indices, [gather map, full indices,
-#: full indptr], empty until the pattern comes a second time)
-_FULL_CACHE: list = []
+    """Symmetric full matrix from its upper triangle (SuperLU factorises the full matrix)."""
+    return (U + sp.triu(U, k=1, format="csr").T).tocsr()

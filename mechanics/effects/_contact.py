@@ -249,8 +249,9 @@ def summed_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray, n: 
     E_r^T blockdiag(K) E_c (E one-hot dof maps), which sums duplicates without a sort and
     drops exact zeros. Measured on the 20k-tet phantom (2496 points, friction on, a perturbed
     state): 1.66M triplets -> 0.11M; the product costs 0.02 s here, the solver's conversion
-    of the effect triplets to its reduced CSR (``ReducedSystem.extra_upper``) fell from
-    0.057 s to 0.002 s, and the concatenation of the effects' triplets shrank alike.
+    of the effect triplets to its reduced CSR fell from 0.057 s to 0.002 s, and the
+    concatenation of the effects' triplets shrank alike. Sorted by row, then column: the
+    solver finds such keys in its kept pattern (:mod:`mechanics.pattern`) 2-6x faster.
     """
     S, r, c = K.shape
     if S == 0:
@@ -264,6 +265,7 @@ def summed_blocks(row_dofs: np.ndarray, col_dofs: np.ndarray, K: np.ndarray, n: 
                          np.broadcast_to(np.asarray(col_dofs)[:, None, :], (S, r, c)).ravel(),
                          np.arange(0, S * r * c + 1, c)), shape=(S * r, n))
     A = (Er_t @ KEc).tocsr()
+    A.sort_indices()
     rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A.indptr))
     return rows, A.indices.astype(np.int64), A.data
 

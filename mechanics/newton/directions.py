@@ -8,7 +8,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.sparse as sp
 
 from mechanics.krylov import fgmres
 from mechanics.linear_solvers import SingularSystem
@@ -37,7 +36,7 @@ class _Directions:
         if not parts:
             return None
         r, c, v = (np.concatenate(q) for q in zip(*parts, strict=True))
-        return (A + self.sys.extra_upper(r, c, mu * v, symmetric=self.symmetric)).tocsr()
+        return self.pattern.plus(A, r, c, mu * v)
 
     def regularized(self, A, u: np.ndarray, rel: float):
         """Newton matrices to try when A is singular, in order: A + min(1, rel) S (see
@@ -51,7 +50,8 @@ class _Directions:
         d = np.zeros(self.sys.n)
         d[:nf] = np.abs(A.diagonal()[:nf])
         d[:nf] = np.where(d[:nf] > 0.0, d[:nf], d[:nf].max(initial=0.0) or 1.0)
-        yield (A + sp.diags(self.opt.singular_shift * mu * d, format="csr")).tocsr()
+        at = np.flatnonzero(d)
+        yield self.pattern.plus(A, at, at, self.opt.singular_shift * mu * d[at], reduced=True)
 
     def direction(self, A, R, rel: float, *, fresh: bool = False) -> np.ndarray:
         """The Newton correction du (3N,) mm for the residual R and Newton matrix A (the

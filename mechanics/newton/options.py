@@ -98,6 +98,11 @@ class SolverOptions:
         ``stats["convergence"]`` states the criteria and the last step's norms.
     accept_residual : the largest relative residual of a step accepted by the norms above
         (0: never accept a step by the norms)
+    pattern_drop_below : an effect's tangent entries outside the pattern the solve's Newton
+        matrices share are left out of the matrix where their 2-norm is at most this
+        fraction of the effect's tangent's (a modified Newton step; else the pattern grows
+        and the factorisation's symbolic analysis is redone), never in a step that solves
+        exactly; 0: always grow (:mod:`mechanics.pattern`)
     progress : log every Newton iteration at INFO level
     threads : MKL threads of the PARDISO phases; None: the environment variable
         ``BREASTMODEL_THREADS``, else the cores this process may run on (never the load;
@@ -128,6 +133,7 @@ class SolverOptions:
     dtol: float = 1e-3
     etol: float = 1e-2
     accept_residual: float = 1e-3
+    pattern_drop_below: float = 1e-3
     progress: bool = False
     threads: int | None = None
     deadline: float | None = None

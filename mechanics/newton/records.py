@@ -49,6 +49,9 @@ def _stats(nw: _Newton, rss_start: float, wall: float) -> dict:
         "unknowns": int(nw.sys.n), "matrix_nnz_upper": int(nw.sys.nnz),
         "evaluations": nw.n_eval, "factorizations": nw.n_factor,
         "analyses": int(getattr(lin, "analyses", 0)),
+        # the Newton matrices' kept pattern (mechanics.pattern): how often it grew, how
+        # many small effect entries were left out of the matrices (summed over them)
+        "pattern_growths": nw.pattern.grown, "entries_left_out": nw.pattern.left_out,
         "krylov_solves": nw.krylov_used, "krylov_iterations": nw.krylov_its,
         "krylov_failed": nw.krylov_failed,
         "refinements": int(getattr(lin, "refinements", 0)),

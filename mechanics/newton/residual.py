@@ -19,9 +19,10 @@ def _solid(model: Model, X: np.ndarray) -> Solid:
                  formulation=model.formulation)
 
 
-def _effects(model: Model, X, x, load, cpu: dict | None = None):
-    """Sum of the effects' forces and tangent triplets; ``cpu`` (effect name -> s) gathers
-    each effect's CPU time."""
+def _effects(model: Model, X, x, load, cpu: dict | None = None, *, split: bool = False):
+    """Sum of the effects' forces and tangent triplets (``split``: a list of each effect's
+    (rows, cols, vals), those with entries); ``cpu`` (effect name -> s) gathers each
+    effect's CPU time."""
     force = np.zeros(3 * len(X))
     rows, cols, vals = [], [], []
     for eff in model.effects:
@@ -34,6 +35,8 @@ def _effects(model: Model, X, x, load, cpu: dict | None = None):
             rows.append(np.asarray(c.rows))
             cols.append(np.asarray(c.cols))
             vals.append(np.asarray(c.vals, float))
+    if split:
+        return force, list(zip(rows, cols, vals, strict=True))
     if rows:
         return force, np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
     return force, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)

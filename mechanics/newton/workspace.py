@@ -16,6 +16,7 @@ from mechanics.newton.options import SolverOptions
 from mechanics.newton.records import _PHASES
 from mechanics.newton.residual import _constraints, _effects, _solid, _system
 from mechanics.newton.verdicts import _check_rigid_modes
+from mechanics.pattern import KeptPattern
 from mechanics.solid import InvalidConfiguration
 from mechanics.system import BLOCK
 
@@ -35,6 +36,7 @@ class _Newton(_Directions):
         _check_rigid_modes(X, self.fixed, self.solid.used_nodes, model)
         self.sys = _system(model, self.solid, self.free)
         self.symmetric = all(getattr(e, "symmetric", True) for e in model.effects)
+        self.pattern = KeptPattern(self.sys, self.symmetric, options.pattern_drop_below)
         self.lin = make_linear_solver(options.linear_solver, threads=options.threads)
         self.anp = model.formulation == "anp"
         if self.anp:
@@ -94,7 +96,7 @@ class _Newton(_Directions):
             for acc, spent in ((self.t, asm.wall), (self.c, asm.cpu)):
                 acc["material"] -= spent
                 acc["assembly"] += spent
-        f, r, c, v = _effects(self.model, self.X, x, load, self.effect_cpu)
+        f, parts = _effects(self.model, self.X, x, load, self.effect_cpu, split=True)
         t0, c0 = self._lap("effects", t0, c0)
         R = ev.force.reshape(-1) + f
         if not np.all(np.isfinite(R)):
@@ -106,13 +108,7 @@ class _Newton(_Directions):
             # both in A now; the line search keeps up to three evaluations (150k tets: the
             # element stiffness is 100 MB, dv 16 MB)
             ev = replace(ev, Kup=None, dv=None)
-            extra = self.sys.extra_upper(r, c, v, symmetric=self.symmetric)
-            if not self.symmetric:
-                from mechanics.system import full_from_upper
-
-                A = full_from_upper(A)
-            if extra is not None:
-                A = (A + extra).tocsr()
+            A = self.pattern.matrix(A, parts, exact=self.exact)
             self._lap("assembly", t0, c0)
         return ev, R, A
 

@@ -478,20 +478,6 @@ def test_summed_blocks_equal_the_plain_triplets():
                                atol=1e-13)
 
 
-def test_full_from_upper_reuses_its_pattern():
-    """The friction path calls full_from_upper with one pattern at every evaluation: repeated
-    calls (the cached gather from the second on) give U + strict_upper(U)^T exactly."""
-    from mechanics.system import full_from_upper
-
-    rng = np.random.default_rng(2)
-    U = sp.triu(sp.random(50, 50, density=0.2, random_state=3), format="csr")
-    for _ in range(3):
-        V = sp.csr_matrix((rng.normal(size=U.nnz), U.indices.copy(), U.indptr.copy()),
-                          shape=U.shape)
-        ref = (V + sp.triu(V, k=1).T).toarray()
-        np.testing.assert_array_equal(full_from_upper(V).toarray(), ref)
-
-
 def test_default_edge_extension_is_one_triangle_height():
     """By default the muscle surface extends one edge-triangle height (10/3 mm here) past its
     edge, standing in for the chest wall beyond the muscle; points further out are released."""
