@@ -70,7 +70,9 @@ class SolverOptions:
         compressive ones alone did worse (supine 26). The first direction from such a
         matrix that raises the residual ends this for the rest of the step
     stagnate_after, stagnate_above : cut a step back early once it has taken
-        ``stagnate_after`` iterations and the relative residual is still above
+        ``stagnate_after`` iterations (a step from rest whose relative residual lies between
+        ``stagnate_above`` and 0.1: twice as many, see ``mechanics.newton.iteration._NEAR``)
+        and the relative residual is still above
         ``stagnate_above`` (or, below it, the best residual has not halved in 5 iterations)
         and fell less than 10x over the last 3 iterations, and shows no other progress
         (see ``_progressing``; measured: friction solves leaving their first iterations'

@@ -217,11 +217,12 @@ def test_progress_that_the_stagnation_check_leaves_alone():
 
 
 def test_a_slow_step_from_rest_near_equilibrium_gets_twice_the_iterations():
-    """The first step from rest of a sliding model measured on the suite's small-000
+    """The first ten residuals of a step from rest measured on the suite's small-000
     (breast 0.1, skin 20, fascia 80 kPa, prone; rounded): at 9 iterations it is at 1.4e-2,
     between ``stagnate_above`` and 0.1, so it is not stagnating before 16 (it converged at
-    19); the same crawl in a later step, or far from equilibrium (0.3-0.5: the 17k mesh's
-    softest corner), is stagnating at 8, and below ``stagnate_above`` the rule is
+    19; here it goes on crawling at 1.2-1.5e-2, made up, and is cut back at 16); the same
+    crawl in a later step, or far from equilibrium (0.3-0.5: the 17k mesh's softest corner's
+    step to full load), is stagnating at 8, and below ``stagnate_above`` the rule is
     unchanged."""
     from mechanics.newton.iteration import _stagnating
 
