@@ -22,10 +22,25 @@ step that stagnates solves exactly (``exact``): nothing is left out.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
 from mechanics.system import ReducedSystem, _sorted_unique
+
+
+@dataclass
+class _Seen:
+    """One effect's last triplets: their rows and columns (dof numbering), which of them are
+    entries (``keep``), those entries' keys, and their positions in the pattern (its size
+    where left out; None until located)."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    keep: np.ndarray
+    keys: np.ndarray
+    at: np.ndarray | None = None
 
 
 class KeptPattern:
@@ -38,7 +53,7 @@ class KeptPattern:
         self.indptr = self.indices = None
         self.grown = 0  # patterns made: the first and each growth
         self.left_out = 0  # effect entries left out of the Newton matrices
-        self._seen: dict = {}  # effect index -> [rows, cols, keep, keys, positions]
+        self._seen: dict[int, _Seen] = {}  # by the effect's index in ``parts``
         # where the mesh's upper entries (and, unsymmetric, the mirrors of its strict upper
         # ones, ``_strict``) go: made with the pattern, none for a solve without effect
         # entries (a 150k-tet hemisphere's would hold 300 MB)
@@ -67,8 +82,8 @@ class KeptPattern:
         if self.keys is None:
             self._mesh_entries()
             for h in self._seen.values():
-                if h[4] is not None:
-                    h[4] = _find(self.keys, h[3])[0]
+                if h.at is not None:
+                    h.at = _find(self.keys, h.keys)[0]
             new = new[_find(self.keys, new)[1]]
         keys = self.keys
         if len(new):  # the old entries move up by the new ones before them, the spare slot too
@@ -80,11 +95,11 @@ class KeptPattern:
             if self._at_lower is not None:
                 self._at_lower = moved[self._at_lower]
             for h in self._seen.values():
-                if h[4] is not None:
-                    h[4] = moved[h[4]]
-                    out = h[4] == len(keys)  # left out before: perhaps in now
+                if h.at is not None:
+                    h.at = moved[h.at]
+                    out = h.at == len(keys)  # left out before: perhaps in now
                     if out.any():
-                        h[4][out] = _find(keys, h[3][out])[0]
+                        h.at[out] = _find(keys, h.keys[out])[0]
         self._set(keys)
 
     def _mesh_entries(self) -> None:
@@ -128,28 +143,28 @@ class KeptPattern:
         at = []
         for i, (r, c, _) in enumerate(parts):
             h = self._seen.get(i)
-            if h is None or not (np.array_equal(h[0], r) and np.array_equal(h[1], c)):
-                h = self._seen[i] = [np.array(r), np.array(c), *self._keys(r, c, False), None]
+            if h is None or not (np.array_equal(h.rows, r) and np.array_equal(h.cols, c)):
+                h = self._seen[i] = _Seen(np.array(r), np.array(c), *self._keys(r, c, False))
             at.append(h)
-        vals = [np.asarray(p[2], float)[h[2]] for h, p in zip(at, parts, strict=True)]
+        vals = [np.asarray(p[2], float)[h.keep] for h, p in zip(at, parts, strict=True)]
         new = []
         for h, v in zip(at, vals, strict=True):
-            if h[4] is None:
-                h[4], out = self._locate(h[3])
+            if h.at is None:
+                h.at, out = self._locate(h.keys)
             else:  # left out before, maybe too large now
-                out = h[4] == len(self.keys)
+                out = h.at == len(self.keys)
             if not out.any():
                 continue
             if exact or self.keys is None or \
                     np.linalg.norm(v[out]) > self.drop_below * np.linalg.norm(v):
-                new.append(h[3][out])
+                new.append(h.keys[out])
             else:
                 self.left_out += int(out.sum())
         if new or self.keys is None:
             self._grow(np.concatenate(new or [np.zeros(0, np.int64)]))  # moves those found
         m = len(self.keys)
         data = np.zeros(m) if not at else np.bincount(
-            np.concatenate([h[4] for h in at]), weights=np.concatenate(vals), minlength=m + 1)[:m]
+            np.concatenate([h.at for h in at]), weights=np.concatenate(vals), minlength=m + 1)[:m]
         data[self._at_upper] += base.data
         if not self.symmetric:
             data[self._at_lower] += base.data[self._strict]

@@ -76,7 +76,7 @@ def _stop_early(opt: SolverOptions, entry: dict, u, ev, reason: str):
 
 
 def _stagnating(opt: SolverOptions, res: list[float], it: int, rel: float,
-                exact_from: int | None, from_rest: bool = False) -> bool:
+                exact_from: int | None, from_rest: bool) -> bool:
     """True when a step has stopped making progress (``SolverOptions.stagnate_after``): at
     least ``stagnate_after`` iterations (and 4 since its linear solves became exact), the
     relative residual ``rel`` of iteration ``it`` fell less than 10x over the last 3

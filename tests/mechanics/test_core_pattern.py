@@ -4,6 +4,7 @@ the solve allows it."""
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 from zoo import hemisphere
 
 from mechanics.model import build_model
@@ -91,3 +92,15 @@ def test_small_entries_outside_the_pattern_are_left_out_unless_exact():
     np.testing.assert_allclose(kp2.matrix(U, [far], exact=True).toarray(),
                                _plain(sysm, U, [far], False), rtol=0, atol=1e-12)
     assert kp2.left_out == 0
+
+
+def test_full_from_upper_is_the_symmetric_matrix():
+    """The full matrix SuperLU and the unsymmetric pattern start from: U + strict_upper(U)^T
+    exactly, call after call on one pattern."""
+    rng = np.random.default_rng(2)
+    U = sp.triu(sp.random(50, 50, density=0.2, random_state=3), format="csr")
+    for _ in range(3):
+        V = sp.csr_matrix((rng.normal(size=U.nnz), U.indices.copy(), U.indptr.copy()),
+                          shape=U.shape)
+        ref = (V + sp.triu(V, k=1).T).toarray()
+        np.testing.assert_array_equal(full_from_upper(V).toarray(), ref)
