@@ -278,7 +278,6 @@ def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, ob
     wrong (a weak gland answered by a compliant interface: 1.10 -> 1.12 mm; a sliding layer
     answered by Gent stiffening: 1.33 -> 1.36), while every right answer lowered it (by
     2-68 %)."""
-    cfg, model = run.config, run.model
     by_name = {c.name: c for c in candidates}
     confirmed = tried = 0
     for r in ranking:
@@ -288,9 +287,8 @@ def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, ob
             continue
         tried += 1
         verify = verify_measurement if r["measurement"] else verify_effect
-        r["verified"] = verify(by_name[r["name"]], r if r["measurement"] else r["estimate"],
-                               run, cfg, model, fitted, obj_pos, positions, work_dir,
-                               verify_budget, progress)
+        r["verified"] = verify(by_name[r["name"]], r, run, fitted, obj_pos, positions,
+                               work_dir, verify_budget, progress)
         after = r["verified"].get("mhd_mm") or {}
         common = [p for p in after if p in base_mhd]
         if common:

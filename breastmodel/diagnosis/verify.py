@@ -18,18 +18,20 @@ from breastmodel.diagnosis.candidates import Candidate
 from breastmodel.diagnosis.evaluations import fit_bounds, model_hash
 
 
-def verify_effect(c: Candidate, estimate: Mapping[str, float], run, cfg, model, fitted, obj_pos,
-            positions, work_dir: Path, budget: int, progress: bool) -> dict:
+def verify_effect(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos, positions,
+                  work_dir: Path, budget: int, progress: bool) -> dict:
     """Switch ``c`` on and re-fit its parameters and the (not inert) fitted ones by least
-    squares on the scored positions, from the linear estimate. Returns the best
-    evaluation's MHD per position and parameters, or the error."""
+    squares on the scored positions, from the linear estimate (``entry["estimate"]``, the
+    candidate's ranking entry). Returns the best evaluation's MHD per position and
+    parameters, or the error."""
     from breastmodel.pipeline.config import set_params
     from breastmodel.pipeline.fit import least_squares
 
+    cfg, model = run.config, run.model
     params = {q: dict(zip(("min", "max"), fit_bounds(cfg, q))) for q in fitted
               if not set(q.split("|")) & set(c.replaces)}
     params.update({f: {"min": lo, "max": hi} for f, (lo, hi) in c.free.items()})
-    start = {**c.start, **estimate}
+    start = {**c.start, **entry["estimate"]}
     x0 = {p: min(max(float(start[p]), spec["min"]), spec["max"]) for p, spec in params.items()
           if p in start}
     settings = {"model": set_params(c.apply(model), start), "solver": cfg["solver"],
@@ -73,16 +75,16 @@ def corrected_problem(problem_dir: Path, out: Path, moves: Mapping[str, Any]) ->
     return out
 
 
-def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, cfg, model, fitted,
-                        obj_pos, positions, work_dir: Path, budget: int,
-                        progress: bool) -> dict:
-    """Correct the measured skin as estimated (rigid motion exact, offset along the vertex
-    normals) in a copy of the problem, and re-fit the fitted parameters there by least
-    squares (at most ``budget`` evaluations)."""
+def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos,
+                       positions, work_dir: Path, budget: int, progress: bool) -> dict:
+    """Correct the measured skin as estimated in the candidate's ranking entry (rigid motion
+    exact, offset along the vertex normals) in a copy of the problem, and re-fit the fitted
+    parameters there by least squares (at most ``budget`` evaluations)."""
     from breastmodel.diagnosis.measurement import _vertex_normals
     from breastmodel.pipeline.fit import least_squares
     from breastmodel.pipeline.problem import evaluate_params
 
+    cfg, model = run.config, run.model
     if c.measurement == "rigid":
         tr = entry["transform"]
         R, t, ctr = (np.asarray(tr[k]) for k in ("rotation", "translation", "centre"))

@@ -170,17 +170,16 @@ def _line_search(nw: _Newton, u, du, lam: float, R):
 
 def _after_modified(nw: _Newton, accepted, u, du, lam, r0: float, rel: float, entry: dict,
                     it: int):
-    """The line search's accepted point (eta, ev, R, A), its Newton matrix exact from here on
-    where the direction came from a matrix without the tensile pressure stiffness and
-    raised the relative residual (as the next iteration sees it) above ``rel``: the step is
-    kept and the rest of the step uses the exact tangent (20k-tet phantom, 45 deg tilted:
-    0.77 -> 2.8, then 12 iterations in all against 13 without the option; undoing the step
-    instead took 18)."""
-    modified, nw.a_modified = nw.a_modified, nw.no_pressure_stiffness
+    """The line search's accepted point (eta, ev, R, A) after a direction from a matrix
+    without the tensile pressure stiffness, its Newton matrix exact from here on where that
+    direction raised the relative residual (as the next iteration sees it) above ``rel``:
+    the step is kept and the rest of the step uses the exact tangent (20k-tet phantom, 45 deg
+    tilted: 0.77 -> 2.8, then 12 iterations in all against 13 without the option; undoing
+    the step instead took 18)."""
     rf, rc = nw.norms(accepted[2])
-    if not modified or rf / max(rc, r0, 1e-300) <= rel:
+    if rf / max(rc, r0, 1e-300) <= rel:
         return accepted
-    nw.exact_tangent, nw.no_pressure_stiffness, nw.a_modified = True, False, False
+    nw.exact_tangent, nw.no_pressure_stiffness = True, False
     entry["exact_tangent_from"] = it
     return (accepted[0], *nw.evaluate(u + accepted[0] * du, lam, tangent=True))
 
@@ -197,7 +196,6 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
     nw.exact = False
     from_rest = not np.any(u[nw.free])
     nw.exact_tangent = opt.tensile_pressure_stiffness_below <= 0.0  # for the rest of the step
-    nw.a_modified = nw.no_pressure_stiffness  # A was evaluated without that stiffness
     for it in range(opt.max_newton + 1):
         if opt.deadline is not None and time.perf_counter() > opt.deadline:
             raise SolverError(f"mechanics: the time budget ran out at load {lam:.4g} "
@@ -238,13 +236,16 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
         if energy0 is None:
             R0_free = R[nw.free].copy()
         entry.setdefault("linear_residuals", []).append(nw.last_linear_residual)
-        # the Newton matrices of this iteration's trial points, used by the next direction
+        # A (this direction's matrix) was evaluated with the flag as it stands; the Newton
+        # matrices of this iteration's trial points, used by the next direction, get it anew
+        modified = nw.no_pressure_stiffness
         nw.no_pressure_stiffness = not (nw.exact_tangent or nw.exact) \
             and rel > opt.tensile_pressure_stiffness_below
         accepted, valid_eta = _line_search(nw, u, du, lam, R)
         if accepted is None:
             return False, u, ev, "element inversion (J <= 0) along the Newton direction"
-        accepted = _after_modified(nw, accepted, u, du, lam, r0, rel, entry, it)
+        if modified:
+            accepted = _after_modified(nw, accepted, u, du, lam, r0, rel, entry, it)
         if it == 0 and from_rest and valid_eta < 1.0 and opt.first_inversion_shrink > 0.0:
             # From rest the first direction is the load times the tangent's response: where
             # it inverts an element unless scaled by eta, the load is too large by about

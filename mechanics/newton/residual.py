@@ -19,12 +19,12 @@ def _solid(model: Model, X: np.ndarray) -> Solid:
                  formulation=model.formulation)
 
 
-def _effects(model: Model, X, x, load, cpu: dict | None = None, *, split: bool = False):
-    """Sum of the effects' forces and tangent triplets (``split``: a list of each effect's
-    (rows, cols, vals), those with entries); ``cpu`` (effect name -> s) gathers each
-    effect's CPU time."""
+def _effects(model: Model, X, x, load, cpu: dict | None = None):
+    """Sum of the effects' forces, and the list of each effect's tangent triplets (rows,
+    cols, vals), those with entries; ``cpu`` (effect name -> s) gathers each effect's CPU
+    time."""
     force = np.zeros(3 * len(X))
-    rows, cols, vals = [], [], []
+    parts = []
     for eff in model.effects:
         c0 = time.process_time()
         c = eff.contribute(X, x, load)
@@ -32,14 +32,8 @@ def _effects(model: Model, X, x, load, cpu: dict | None = None, *, split: bool =
             cpu[eff.name] = cpu.get(eff.name, 0.0) + time.process_time() - c0
         force += np.asarray(c.force, float).reshape(-1)
         if len(c.vals):
-            rows.append(np.asarray(c.rows))
-            cols.append(np.asarray(c.cols))
-            vals.append(np.asarray(c.vals, float))
-    if split:
-        return force, list(zip(rows, cols, vals, strict=True))
-    if rows:
-        return force, np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-    return force, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
+            parts.append((np.asarray(c.rows), np.asarray(c.cols), np.asarray(c.vals, float)))
+    return force, parts
 
 
 def residual_and_tangent(model: Model, X: np.ndarray, x: np.ndarray,
@@ -52,10 +46,11 @@ def residual_and_tangent(model: Model, X: np.ndarray, x: np.ndarray,
     x = np.asarray(x, float)
     solid = _solid(model, X)
     ev = solid.evaluate(x)
-    f, r, c, v = _effects(model, X, x, load)
+    f, parts = _effects(model, X, x, load)
     R = ev.force.reshape(-1) + f
     K = solid.condensed_tangent(ev)
-    if len(v):
+    if parts:
+        r, c, v = (np.concatenate(a) for a in zip(*parts, strict=True))
         n = 3 * len(X)
         K = (K + sp.coo_matrix((v, (r, c)), shape=(n, n))).tocsr()
     return R, K

@@ -67,7 +67,6 @@ class _Newton(_Directions):
         # Newton matrices without the tensile pressure's geometric stiffness (SolverOptions.
         # tensile_pressure_stiffness_below), set by the iterations of a step
         self.no_pressure_stiffness = False
-        self.a_modified = False  # the current Newton matrix was made so
         self.exact_tangent = False  # the rest of the step uses the exact tangent
         self.last_linear_residual = float("nan")  # relative, of the last Newton direction
 
@@ -96,7 +95,7 @@ class _Newton(_Directions):
             for acc, spent in ((self.t, asm.wall), (self.c, asm.cpu)):
                 acc["material"] -= spent
                 acc["assembly"] += spent
-        f, parts = _effects(self.model, self.X, x, load, self.effect_cpu, split=True)
+        f, parts = _effects(self.model, self.X, x, load, self.effect_cpu)
         t0, c0 = self._lap("effects", t0, c0)
         R = ev.force.reshape(-1) + f
         if not np.all(np.isfinite(R)):

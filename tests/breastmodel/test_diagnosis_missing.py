@@ -191,7 +191,7 @@ def test_a_candidate_whose_re_fit_does_not_lower_the_worst_mhd_is_not_confirmed(
     after = {"a": {"prone": 1.0, "supine": 1.12}, "b": {"prone": 0.9, "supine": 0.8}}
     refits = []
 
-    def fake_verify(c, estimate, *args):
+    def fake_verify(c, entry, *args):
         refits.append(c.name)
         return {"mhd_mm": after[c.name], "evaluations": 3}
 
