@@ -15,7 +15,7 @@ from mechanics.model import Model
 from mechanics.newton.iteration import _newton
 from mechanics.newton.options import NoEquilibrium, SolverError, SolverOptions
 from mechanics.newton.records import _convergence, _counters, _rss_mb, _stats, _step_costs
-from mechanics.newton.verdicts import _limit_point, _mesh_hint
+from mechanics.newton.verdicts import _crush_hint, _limit_point, _mesh_hint
 from mechanics.newton.workspace import _Newton
 from mechanics.solid import InvalidConfiguration
 from mechanics.state import State
@@ -169,7 +169,7 @@ def _cut_back(nw: _Newton, path: _Path, new_lam: float, entry: dict, t_start: fl
     raise SolverError(
         f"mechanics: Newton diverged at load {new_lam:.4g} after {cutbacks} cut-back(s) "
         f"(last reason: {entry['cutback']}); last converged load {lam:.4g}"
-        f"{_mesh_hint(model.mesh) if lam == 0.0 else ''}",
+        f"{_mesh_hint(model.mesh) if lam == 0.0 else _crush_hint(model, nw.X, st.J)}",
         st,
     )
 

@@ -58,7 +58,8 @@ def test_a_deadline_stops_the_solve_at_its_next_newton_iteration():
 
 
 def test_divergence_keeps_last_converged_state():
-    # Squashing a unit cube by 1.5 mm must invert elements somewhere before full load.
+    """Squashing a unit cube by 1.5 mm must invert elements somewhere before full load; the
+    failure keeps the last converged state and says where its tets have collapsed."""
     mesh = box((2, 2, 2))
     model = build_model(mesh, NH, {
         "fixed:base": {"node_set": "xmin"},
@@ -71,6 +72,12 @@ def test_divergence_keeps_last_converged_state():
     assert 0.0 < st.load < 1.0 / 1.5
     np.testing.assert_allclose(st.u[mesh.node_sets["xmax"], 0], -1.5 * st.load)
     assert np.all(st.J > 0)
+    crushed = np.flatnonzero(st.J < 0.2)
+    k = crushed[np.argmin(st.J[crushed])]
+    at = ", ".join(f"{c:.1f}" for c in mesh.nodes[mesh.tets[k]].mean(axis=0))
+    assert len(crushed) and (f"{len(crushed)} of {mesh.n_tets} tets have lost more than 80% "
+                             f"of their volume (J down to {st.J[k]:.2f}, the lowest at ({at}) "
+                             "mm") in str(info.value)
 
 
 @pytest.mark.parametrize("supports", [{}, {"fixed": {"nodes": [0]}},
