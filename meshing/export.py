@@ -118,10 +118,11 @@ def read_vtu(path: str | Path) -> Mesh:
 
 
 def write_ply(vertices: np.ndarray, triangles: np.ndarray, path: str | Path) -> Path:
-    """Triangle surface as binary PLY (vertices in mm)."""
+    """Triangle surface as binary PLY (vertices in mm; vertex indices as PLY's 32-bit int,
+    which meshio would otherwise cast to with a warning on every file)."""
     import meshio
 
-    m = meshio.Mesh(np.asarray(vertices, float), [("triangle", np.asarray(triangles, np.int64))])
+    m = meshio.Mesh(np.asarray(vertices, float), [("triangle", np.asarray(triangles, np.int32))])
     return _atomic(Path(path), lambda p: meshio.write(p, m, file_format="ply"))
 
 
