@@ -236,9 +236,7 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
         if energy0 is None:
             R0_free = R[nw.free].copy()
         entry.setdefault("linear_residuals", []).append(nw.last_linear_residual)
-        # A (this direction's matrix) was evaluated with the flag as it stands; the Newton
-        # matrices of this iteration's trial points, used by the next direction, get it anew
-        modified = nw.no_pressure_stiffness
+        modified = nw.no_pressure_stiffness  # how A was made (the next line: the trials')
         nw.no_pressure_stiffness = not (nw.exact_tangent or nw.exact) \
             and rel > opt.tensile_pressure_stiffness_below
         accepted, valid_eta = _line_search(nw, u, du, lam, R)
