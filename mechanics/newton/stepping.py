@@ -169,7 +169,7 @@ def _cut_back(nw: _Newton, path: _Path, new_lam: float, entry: dict, t_start: fl
     raise SolverError(
         f"mechanics: Newton diverged at load {new_lam:.4g} after {cutbacks} cut-back(s) "
         f"(last reason: {entry['cutback']}); last converged load {lam:.4g}"
-        f"{_mesh_hint(model.mesh) if lam == 0.0 else _crush_hint(model, nw.X, st.J)}",
+        f"{_mesh_hint(model.mesh) if lam == 0.0 else _crush_hint(nw, st.J)}",
         st,
     )
 

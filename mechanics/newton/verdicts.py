@@ -174,10 +174,12 @@ def _limit_point(nw: _Newton, first, prev, lam: float, u: np.ndarray) -> dict | 
 CRUSHED_J = 0.2
 
 
-def _crush_hint(model: Model, X: np.ndarray, J: np.ndarray) -> str:
-    """Where the last converged state's tets have collapsed (see :data:`CRUSHED_J`), as a
-    clause of the failure's message; empty where none has."""
-    bad = np.flatnonzero(np.asarray(J) < CRUSHED_J)
+def _crush_hint(nw: _Newton, J: np.ndarray) -> str:
+    """Where the last converged state's tets (``J`` their volume ratios) have collapsed (see
+    :data:`CRUSHED_J`; geometrically linear ones never count), as a clause of the failure's
+    message; empty where none has."""
+    model, X = nw.model, nw.X
+    bad = np.flatnonzero((np.asarray(J) < CRUSHED_J) & ~nw.solid.linear_mask)
     if len(bad) == 0:
         return ""
     from mechanics.mesh import REGIONS
