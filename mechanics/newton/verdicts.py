@@ -164,6 +164,7 @@ def _limit_point(nw: _Newton, first, prev, lam: float, u: np.ndarray) -> dict | 
             "carried_mN": shares, "motion_direction": move.tolist(),
             "message": message}
 
+
 #: A tet whose volume ratio J is below this in a converged state has lost most of its
 #: volume, which none of the model's tissues (nu about 0.49) does: the averaged nodal
 #: pressure holds the volume of each node's patch, not of each tet, which lets neighbouring
