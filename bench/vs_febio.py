@@ -90,6 +90,20 @@ What each lever bought (counts and CPU; loads as stated):
   1.0 s against 1.4 s (not adopted: one measurement); two-level factorisation (iparm 24) the
   same fill.
 - initial_steps 2: no longer pays (20k: 1 factorisation either way, 8 against 6 Newton).
+- measured 2026-11-29 and not kept (20k NH, 2 threads, best of 40 evaluations of the solid):
+  the element stiffness kernel's 2048-tet chunks on a pool of the solve's threads, 39.5 ->
+  34-37 ms per evaluation (the kernel alone 17 -> 10 ms), 150k 296 -> 291 ms; the
+  kinematics and the closed-form laws in chunks as well, nothing more. The kernels stream
+  mesh-sized arrays through memory, so a second thread mostly shares the bandwidth; about
+  0.03 s of a 20k solve was not worth a thread pool in the solid. PARDISO's parallel
+  forward/backward solve (iparm 25 = 1 or 2): the 23 GMRES iterations' solves 0.22-0.24 s
+  either way. glibc's malloc kept from returning memory (MALLOC_TOP_PAD_, _TRIM_THRESHOLD_,
+  _MMAP_THRESHOLD_): the first 20k solve of a process 1.15-1.26 -> 1.09-1.13 s (page faults
+  of freshly mapped arrays), but that is the host process's setting, not a library's.
+- our children run from byte-compiled modules (compiled before the runs): with
+  PYTHONDONTWRITEBYTECODE=1 in the environment each had compiled the solver's modules again,
+  0.06-0.1 s per 20k process. Same day, one machine slower than on 2026-11-26 (FEBio BFGS
+  3.2-3.45 s against 2.1-2.8): two runs of 20k NH / Gent, ratio 0.46 / 0.53 and 0.54 / 0.57.
 
 Usage: ``python bench/vs_febio.py [--sizes 20k,150k] [--materials nh,gent]
 [--configs default,...] [--threads N] [--febio live|recorded|none]``; writes
@@ -99,6 +113,7 @@ Usage: ``python bench/vs_febio.py [--sizes 20k,150k] [--materials nh,gent]
 from __future__ import annotations
 
 import argparse
+import compileall
 import json
 import os
 import subprocess
@@ -370,6 +385,11 @@ def main(argv=None) -> int:
     from mechanics.linear_solvers import resolve_threads
 
     threads = resolve_threads(args.threads)
+    # Our children import byte-compiled modules, as an installed package's processes do;
+    # where the environment forbids writing bytecode (PYTHONDONTWRITEBYTECODE=1, set on the
+    # machines these runs were made on), every child compiled the solver's 50 modules
+    # again: 0.06-0.1 s of a 20k process's 1.2-1.9 s (2026-11-29)
+    compileall.compile_dir(str(ROOT / "mechanics"), quiet=1)
     rows: list[dict] = []
     print(f"threads {threads}; wall s: start to exit of the process; cpu s: user + sys of "
           f"all its threads; MB: its peak RSS; load: 1-min load average before->after "
@@ -405,6 +425,7 @@ def main(argv=None) -> int:
             "ours_tol": "relative residual 1e-8 (||R_free|| / max(||R_fixed||, ||R_0||))",
             "febio_tol": "BFGS: FEBio defaults (dtol 1e-3, etol 1e-2); newton: tight",
             "targets": "time <= 0.5 x FEBio's best, peak memory <= FEBio's",
+            "bytecode": "the solver's modules byte-compiled before the runs",
             "configs": CONFIGS, "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     if args.out.exists():
