@@ -158,9 +158,14 @@ class Solid:
         energy += energy_vol
         fe += p_elem[:, None, None] * dv
         force = self.node_sum @ fe.reshape(4 * len(self.V0), 3)
+        # mesh-sized arrays the stiffness does not need go before it (150k tets: 12-16 MB
+        # each), and g goes once transposed
+        del Finv, fe
         Kup = None
         if tangent:
-            Kup = self._element_stiffness(J, g, v, dv, p_elem if tensile_pressure_stiffness
+            gT = np.ascontiguousarray(g.reshape(len(self.V0), 12).T)
+            del g
+            Kup = self._element_stiffness(J, gT, v, dv, p_elem if tensile_pressure_stiffness
                                           else np.minimum(p_elem, 0.0), co, generic, sink)
         self._i1_coef = None  # mesh-sized coefficients (f, q: 30 MB at 150k tets)
         return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
@@ -229,11 +234,13 @@ class Solid:
             energy = float(0.5 * np.dot(self.bulk_elem * V0, (v / V0 - 1.0) ** 2))
         return p_node, p_elem, energy
 
-    def _element_stiffness(self, J, g, v, dv, p_elem, co, generic, sink=None):
+    def _element_stiffness(self, J, gT, v, dv, p_elem, co, generic, sink=None):
         """Upper triangles of the element stiffness, mN/mm: the closed-form laws' kernel and
         the volume's geometric stiffness in blocks of elements, then the other laws'
-        stiffness and the volumetric term of geometrically linear elements. Returns them
-        (M, 78), or hands them to ``sink`` (see :meth:`evaluate`) and returns None."""
+        stiffness and the volumetric term of geometrically linear elements (gT (12, M): the
+        spatial gradients g, element-last; ``co``'s f and q are taken out of it as they are
+        transposed). Returns them (M, 78), or hands them to ``sink`` (see :meth:`evaluate`)
+        and returns None."""
         V0, lin = self.V0, self.linear_mask
         M = len(V0)
         any_lin = bool(lin.any())
@@ -246,17 +253,17 @@ class Solid:
         if co is not None:
             c_gg[sel] += co["gg"]
             c_sw[sel] += co["sw"]
-        gT = np.ascontiguousarray(g.reshape(M, 12).T)
         fT = qT = None
         if co is not None:
             fT = np.zeros((12, M))
-            fT[:, sel] = co["f"].reshape(-1, 12).T
+            fT[:, sel] = co.pop("f").reshape(-1, 12).T
             c_fg, c_dd = np.zeros(M), np.zeros(M)
             c_fg[sel], c_dd[sel] = co["fg"], co["dd"]
             if co["qq"] is not None:
                 qT, c_qq = np.zeros((12, M)), np.zeros(M)
                 qT[:, sel] = co["q"].reshape(-1, 12).T
                 c_qq[sel] = co["qq"]
+            del co["q"]
         # Upper triangles, element index last (fast gathers): the whole mesh's, or one
         # sink block's at a time.
         out = BLOCK if sink is not None else M
