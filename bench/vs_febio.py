@@ -100,6 +100,9 @@ What each lever bought (counts and CPU; loads as stated):
   either way. glibc's malloc kept from returning memory (MALLOC_TOP_PAD_, _TRIM_THRESHOLD_,
   _MMAP_THRESHOLD_): the first 20k solve of a process 1.15-1.26 -> 1.09-1.13 s (page faults
   of freshly mapped arrays), but that is the host process's setting, not a library's.
+- the solid drops F^-1, the element forces, g and the laws' f and q (once transposed) before
+  the element stiffness (2026-11-29): 150k NH / Gent peak 1282 / 1285 -> 1170 / 1184 MiB
+  (FEBio 988), the same tips; time 21.0 / 18.2 s against FEBio BFGS 58.8 / 59.9 s that day.
 - our children run from byte-compiled modules (compiled before the runs): with
   PYTHONDONTWRITEBYTECODE=1 in the environment each had compiled the solver's modules again,
   0.06-0.1 s per 20k process. Same day, one machine slower than on 2026-11-26 (FEBio BFGS
