@@ -60,6 +60,39 @@ class SolidEval:
     energy: float  # stored energy, mN mm (= uJ)
 
 
+@dataclass(frozen=True)
+class _Block:
+    """Elements [start, stop) of one block an evaluation streams through, with its laws in
+    block-local indices and the nodal sums of its (element, node) values."""
+
+    sl: slice
+    i1_all: bool  # every element of the block has a closed-form psi(I1bar) law
+    i1_sel: object  # those elements: slice(None), or block-local indices
+    i1_groups: list  # (law, positions in i1_sel)
+    generic_groups: list  # (law, block-local indices) of the other laws
+    node_sum: sp.csr_matrix  # (N, 4k) ones: a CSR product is several times faster than
+    # np.add.at or three bincounts
+
+    @classmethod
+    def make(cls, solid, start: int, stop: int, law_of: np.ndarray, closed: list) -> _Block:
+        group = law_of[start:stop]
+        k = stop - start
+        sel = np.flatnonzero(np.asarray(closed)[group])
+        local = np.full(k, -1, np.int64)
+        local[sel] = np.arange(len(sel))
+        i1, generic = [], []
+        for n, (law, _) in enumerate(solid.groups):
+            idx = np.flatnonzero(group == n)
+            if len(idx):
+                (i1 if closed[n] else generic).append((law, local[idx] if closed[n] else idx))
+        tets = solid.tets[start:stop]
+        node_sum = sp.csr_matrix((np.ones(4 * k), (tets.ravel(), np.arange(4 * k))),
+                                 shape=(solid.n_nodes, 4 * k))
+        all_ = len(sel) == k
+        return cls(slice(start, stop), all_, slice(None) if all_ else sel, i1, generic,
+                   node_sum)
+
+
 class Solid:
     """Bulk material response of a tet mesh in a given reference configuration.
 
@@ -118,22 +151,15 @@ class Solid:
     # ------------------------------------------------------------------------------------
     def _prepare_fast_paths(self) -> None:
         """Constant data of the vectorised kernels (built once per reference configuration):
-        elements of closed-form psi(I1bar) laws, the node-element incidence for sums over
-        the tets around a node, and the constant dN_a . dN_b of every element."""
+        the element blocks an evaluation streams through (:class:`_Block`: their laws and
+        node-element incidence) and the constant dN_a . dN_b of every element."""
         M = len(self.tets)
-        i1 = [(law, idx) for law, idx in self.groups if isinstance(law, IsochoricI1Material)]
-        self.generic_groups = [(law, idx) for law, idx in self.groups
-                               if not isinstance(law, IsochoricI1Material)]
-        sel = np.sort(np.concatenate([idx for _, idx in i1])) if i1 else np.zeros(0, np.int64)
-        self.i1_all = len(sel) == M
-        self.i1_sel = slice(None) if self.i1_all else sel
-        local = np.full(M, -1, np.int64)
-        local[sel] = np.arange(len(sel))
-        self.i1_groups = [(law, local[idx]) for law, idx in i1]
-        # (N, 4M) ones: nodal sums of per-(element, node) values, e.g. forces (a CSR product
-        # is several times faster than np.add.at or three bincounts).
-        self.node_sum = sp.csr_matrix(
-            (np.ones(4 * M), (self.tets.ravel(), np.arange(4 * M))), shape=(self.n_nodes, 4 * M))
+        law_of = np.empty(M, np.int64)  # each element's group
+        for n, (_, idx) in enumerate(self.groups):
+            law_of[idx] = n
+        closed = [isinstance(law, IsochoricI1Material) for law, _ in self.groups]
+        self.blocks = [_Block.make(self, s, min(M, s + BLOCK), law_of, closed)
+                       for s in range(0, M, BLOCK)]
         # dN_a . dN_b for the 10 node pairs a <= b, (10, M): the constant part of the
         # isochoric stiffness of psi(I1bar) laws.
         self.dndn = np.einsum("maJ,maJ->am", self.dN[:, PAIR_A], self.dN[:, PAIR_B])
@@ -150,62 +176,82 @@ class Solid:
         the elements in volumetric tension (p > 0) out of the element stiffness, not out
         of the forces (see ``SolverOptions.tensile_pressure_stiffness_below``).
         Raises :class:`InvalidConfiguration` if an element is inverted or a law is undefined.
+
+        Two passes over the element blocks: F and the volumes (the nodal pressure needs
+        every element's), then forces and stiffness; only F, the stress, the volumes and
+        dv/dx are mesh-sized (150k tets: the rest of an evaluation's arrays are a block's).
         """
         x = np.asarray(x, dtype=np.float64)
-        F, J, Finv, g, v, dv = self._kinematics(x)
-        fe, P, energy, co, generic = self._deviatoric(F, J, Finv, g, tangent)
-        p_node, p_elem, energy_vol = self._volumetric(v)
-        energy += energy_vol
-        fe += p_elem[:, None, None] * dv
-        force = self.node_sum @ fe.reshape(4 * len(self.V0), 3)
-        # mesh-sized arrays the stiffness does not need go before it (150k tets: 12-16 MB
-        # each), and g goes once transposed
-        del Finv, fe
-        Kup = None
-        if tangent:
-            gT = np.ascontiguousarray(g.reshape(len(self.V0), 12).T)
-            del g
-            Kup = self._element_stiffness(J, gT, v, dv, p_elem if tensile_pressure_stiffness
-                                          else np.minimum(p_elem, 0.0), co, generic, sink)
-        self._i1_coef = None  # mesh-sized coefficients (f, q: 30 MB at 150k tets)
-        return SolidEval(force, Kup, dv, p_node, p_elem, F, P, energy)
-
-    def _kinematics(self, x: np.ndarray):
-        """F (M, 3, 3), J (M,), F^-1, the spatial shape-function gradients g (M, 4, 3) 1/mm,
-        the current volumes v (M,) mm^3 and dv/dx (M, 4, 3) mm^2 (geometrically linear
-        elements: their linearised volume). Raises :class:`InvalidConfiguration` where an
-        element is inverted."""
-        dN, V0, lin = self.dN, self.V0, self.linear_mask
-        F = np.matmul(x[self.tets].transpose(0, 2, 1), dN)  # F_iJ = x_ai dN_aJ, (M, 3, 3)
-        J, Finv = det_inv(F)
+        M, lin = len(self.V0), self.linear_mask
+        F, J = np.empty((M, 3, 3)), np.empty(M)
+        Finv = None
+        for b in self.blocks:
+            xe = x[self.tets[b.sl]].transpose(0, 2, 1)
+            np.matmul(xe, self.dN[b.sl], out=F[b.sl])  # F_iJ = x_ai dN_aJ
+            J[b.sl], Finv = det_inv(F[b.sl])  # the inverse kept for a single block
         any_lin = bool(lin.any())
         bad = ~(J > 0.0) & ~lin if any_lin else ~(J > 0.0)
         if np.any(bad):
             raise InvalidConfiguration(f"{int(bad.sum())} element(s) inverted (J <= 0)")
-        g = np.matmul(dN, Finv)  # spatial shape-function gradients g_ai = dN_aJ Finv_Ji, 1/mm
-        v = V0 * J
-        dv = v[:, None, None] * g
-        if any_lin:
-            v = np.where(lin, V0 * (np.trace(F, axis1=1, axis2=2) - 2.0), v)
-            dv = np.where(lin[:, None, None], V0[:, None, None] * dN, dv)
-        return F, J, Finv, g, v, dv
+        v = self.V0 * J
+        if any_lin:  # geometrically linear elements: their linearised volume
+            v = np.where(lin, self.V0 * (np.trace(F, axis1=1, axis2=2) - 2.0), v)
+        p_node, p_elem, energy = self._volumetric(v)
+        force, P, dv = np.zeros((self.n_nodes, 3)), np.empty((M, 3, 3)), np.empty((M, 4, 3))
+        # without a sink, one block's stiffness is the whole (no copy), more are gathered
+        Kup = np.empty((78, M)) if tangent and sink is None and len(self.blocks) > 1 else None
+        p_k = p_elem if tensile_pressure_stiffness else np.minimum(p_elem, 0.0)
+        for b in self.blocks:
+            sl = b.sl
+            if len(self.blocks) > 1:
+                Finv = det_inv(F[sl])[1]
+            g = np.matmul(self.dN[sl], Finv)  # spatial gradients g_ai = dN_aJ Finv_Ji, 1/mm
+            np.multiply(v[sl, None, None], g, out=dv[sl])
+            if any_lin:
+                dv[sl] = np.where(lin[sl, None, None], self.V0[sl, None, None] * self.dN[sl],
+                                  dv[sl])
+            fe, P[sl], e_dev, co, generic = self._deviatoric(b, F[sl], J[sl], Finv, g, tangent)
+            energy += e_dev
+            fe += p_elem[sl, None, None] * dv[sl]
+            force += b.node_sum @ fe.reshape(-1, 3)
+            Finv = fe = None  # the stiffness does not need them
+            if tangent:
+                gT = np.ascontiguousarray(g.reshape(-1, 12).T)
+                del g
+                KT, extra = self._element_stiffness(b, J[sl], gT, v[sl], dv[sl], p_k[sl], co,
+                                                    generic)
+                if sink is None:
+                    if Kup is None:
+                        Kup = KT
+                    else:
+                        Kup[:, sl] = KT
+                else:
+                    sink(sl, KT)
+                for idx, Ke in extra:
+                    if sink is not None:
+                        sink(sl.start + idx, Ke.T)
+                    else:
+                        Kup[:, sl.start + idx] += Ke.T
+        return SolidEval(force, None if Kup is None else Kup.T, dv, p_node, p_elem, F, P,
+                         energy)
 
-    def _deviatoric(self, F, J, Finv, g, tangent: bool):
-        """The isochoric part of every law: element forces fe (M, 4, 3) mN, stress P (M, 3,
-        3) kPa, energy mN mm, the closed-form laws' stiffness coefficients (or None) and the
-        other laws' element stiffness [(elements, (k, 12, 12))]. Raises
+    def _deviatoric(self, b: _Block, F, J, Finv, g, tangent: bool):
+        """The isochoric part of every law on block ``b``'s elements (F, J, Finv, g theirs):
+        element forces fe (k, 4, 3) mN, stress P (k, 3, 3) kPa, energy mN mm, the
+        closed-form laws' stiffness coefficients (or None) and the other laws' element
+        stiffness [(block-local elements, (n, 12, 12))]. Raises
         :class:`InvalidConfiguration` where a law is undefined."""
-        dN, V0 = self.dN, self.V0
-        M = len(V0)
-        fe = np.zeros((M, 4, 3))
-        P = np.zeros((M, 3, 3))
+        dN, V0 = self.dN[b.sl], self.V0[b.sl]
+        k = len(V0)
+        fe = np.zeros((k, 4, 3))
+        P = np.zeros((k, 3, 3))
         energy = 0.0
         co = None
-        if len(self.i1_groups):
-            energy += self._i1_laws(F, J, Finv, g, fe, P, tangent)
-            co = self._i1_coef
+        if len(b.i1_groups):
+            e_i1, co = self._i1_laws(b, F, J, Finv, g, fe, P, tangent)
+            energy += e_i1
         generic = []
-        for law, idx in self.generic_groups:
+        for law, idx in b.generic_groups:
             W, P[idx], A = law.deviatoric(F[idx], tangent=tangent)
             energy += float(np.dot(W, V0[idx]))
             fe[idx] = element_force(P[idx], dN[idx], V0[idx])
@@ -221,7 +267,7 @@ class Solid:
         volumetric energy, mN mm, at the current volumes v (M,) mm^3."""
         V0 = self.V0
         if self.formulation == "anp":
-            v_node = self.node_sum @ np.repeat(0.25 * v, 4)
+            v_node = sum(b.node_sum @ np.repeat(0.25 * v[b.sl], 4) for b in self.blocks)
             Jbar = np.ones(self.n_nodes)
             u = self.used_nodes
             Jbar[u] = v_node[u] / self.V_node[u]
@@ -234,27 +280,25 @@ class Solid:
             energy = float(0.5 * np.dot(self.bulk_elem * V0, (v / V0 - 1.0) ** 2))
         return p_node, p_elem, energy
 
-    def _element_stiffness(self, J, gT, v, dv, p_elem, co, generic, sink=None):
-        """Upper triangles of the element stiffness, mN/mm: the closed-form laws' kernel and
-        the volume's geometric stiffness in blocks of elements, then the other laws'
-        stiffness and the volumetric term of geometrically linear elements (gT (12, M): the
-        spatial gradients g, element-last; ``co``'s f and q are taken out of it as they are
-        transposed). Returns them (M, 78), or hands them to ``sink`` (see :meth:`evaluate`)
-        and returns None."""
-        V0, lin = self.V0, self.linear_mask
+    def _element_stiffness(self, b: _Block, J, gT, v, dv, p_elem, co, generic):
+        """Upper triangles of block ``b``'s element stiffness, mN/mm (arrays: the block's;
+        gT (12, k) the spatial gradients g, element-last): the closed-form laws' kernel and
+        the volume's geometric stiffness in chunks, then the other laws' stiffness and the
+        volumetric term of geometrically linear elements. Returns KT (78, k) and
+        [(block-local elements, their (n, 78))] to add to it."""
+        V0, lin = self.V0[b.sl], self.linear_mask[b.sl]
         M = len(V0)
         any_lin = bool(lin.any())
         # Geometric stiffness of the volume: p d2v/dx2 = p v (g_ai g_bk - g_ak g_bi).
         pv = p_elem * v * ~lin if any_lin else p_elem * v
         c_gg, c_sw = pv.copy(), -pv
         if self.formulation == "standard":
-            c_gg += self.bulk_elem * V0 * J * J * ~lin
-        sel = self.i1_sel
+            c_gg += self.bulk_elem[b.sl] * V0 * J * J * ~lin
+        sel = b.i1_sel
+        fT = qT = None
         if co is not None:
             c_gg[sel] += co["gg"]
             c_sw[sel] += co["sw"]
-        fT = qT = None
-        if co is not None:
             fT = np.zeros((12, M))
             fT[:, sel] = co.pop("f").reshape(-1, 12).T
             c_fg, c_dd = np.zeros(M), np.zeros(M)
@@ -264,72 +308,62 @@ class Solid:
                 qT[:, sel] = co["q"].reshape(-1, 12).T
                 c_qq[sel] = co["qq"]
             del co["q"]
-        # Upper triangles, element index last (fast gathers): the whole mesh's, or one
-        # sink block's at a time.
-        out = BLOCK if sink is not None else M
-        KT = np.empty((78, min(out, M)))
-        for b in range(0, M, out):
-            for s in range(b, min(M, b + out), _CHUNK):  # bounded temporaries, cache reuse
-                e = min(M, s + _CHUNK, b + out)
-                gc = gT[:, s:e]
-                h = c_gg[s:e] * gc
-                if fT is not None:
-                    fc = fT[:, s:e]
-                    h += c_fg[s:e] * fc
-                K = gc[IU] * h[JU]
-                K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
-                if fT is not None:
-                    K += fc[IU] * (c_fg[s:e] * gc)[JU]
-                    K[DIAG_ROWS] += (c_dd[s:e] * self.dndn[:, s:e])[DIAG_PAIR]
-                if qT is not None:
-                    qc = qT[:, s:e]
-                    K += qc[IU] * (c_qq[s:e] * qc)[JU]
-                KT[:, s - b:e - b] = K
-            e = min(M, b + out)
-            if not np.isfinite(KT[:, : e - b].sum()):
-                raise InvalidConfiguration("the tangent is not finite")
-            if sink is not None:
-                sink(slice(b, e), KT[:, : e - b])
+        dndn = self.dndn[:, b.sl]
+        KT = np.empty((78, M))  # element index last: fast gathers
+        for s in range(0, M, _CHUNK):  # bounded temporaries, cache reuse
+            e = min(M, s + _CHUNK)
+            gc = gT[:, s:e]
+            h = c_gg[s:e] * gc
+            if fT is not None:
+                fc = fT[:, s:e]
+                h += c_fg[s:e] * fc
+            K = gc[IU] * h[JU]
+            K += (c_sw[s:e] * gc)[SW1] * gc[SW2]
+            if fT is not None:
+                K += fc[IU] * (c_fg[s:e] * gc)[JU]
+                K[DIAG_ROWS] += (c_dd[s:e] * dndn[:, s:e])[DIAG_PAIR]
+            if qT is not None:
+                qc = qT[:, s:e]
+                K += qc[IU] * (c_qq[s:e] * qc)[JU]
+            KT[:, s:e] = K
+        if not np.isfinite(KT.sum()):
+            raise InvalidConfiguration("the tangent is not finite")
         extra = [(idx, K12[:, IU, JU]) for idx, K12 in generic]
         if any_lin and self.formulation == "standard":
-            extra.append((np.flatnonzero(lin), ((self.bulk_elem / V0)[lin, None]
+            extra.append((np.flatnonzero(lin), ((self.bulk_elem[b.sl] / V0)[lin, None]
                                                * upper_outer(dv[lin], dv[lin]))))
-        for idx, Ke in extra:
+        for _, Ke in extra:
             if not np.isfinite(Ke.sum()):
                 raise InvalidConfiguration("the tangent is not finite")
-            if sink is not None:
-                sink(idx, Ke.T)
-            else:
-                KT[:, idx] += Ke.T
-        return None if sink is not None else KT.T  # (M, 78) view
+        return KT, extra
 
-    def _i1_laws(self, F, J, Finv, g, fe, P, tangent: bool) -> float:
-        """Closed-form force of the psi(I1bar) laws; stores in ``self._i1_coef`` the
-        stiffness coefficients (of g g, the index-swapped g g, f g + g f, D I and q q) of
-        their elements (``self.i1_sel``)."""
-        sel = self.i1_sel
-        if not self.i1_all:
+    def _i1_laws(self, b: _Block, F, J, Finv, g, fe, P, tangent: bool):
+        """Closed-form force of the psi(I1bar) laws on block ``b`` (arrays: the block's,
+        filled in fe and P at its closed-form elements ``b.i1_sel``). Returns their energy
+        and, with ``tangent``, the stiffness coefficients (of g g, the index-swapped g g,
+        f g + g f, D I and q q), else None."""
+        sel = b.i1_sel
+        if not b.i1_all:
             F, J, Finv, g = F[sel], J[sel], Finv[sel], g[sel]
-        dNi, V0 = self.dN[sel], self.V0[sel]
+        dNi, V0 = self.dN[b.sl][sel], self.V0[b.sl][sel]
         I1 = np.einsum("mij,mij->m", F, F)
         a = np.cbrt(J) ** -2
         I1bar = a * I1
         W, d1, d2 = np.empty_like(I1), np.empty_like(I1), np.empty_like(I1)
-        for law, idx in self.i1_groups:
+        for law, idx in b.i1_groups:
             W[idx], d1[idx], d2[idx] = law.psi(I1bar[idx])
         f = np.matmul(dNi, F.transpose(0, 2, 1))  # f_ai = F_iJ dN_aJ
         q = a[:, None, None] * (2.0 * f - (2.0 / 3.0) * I1[:, None, None] * g)  # dI1bar/dx_ai
         fe[sel] = (V0 * d1)[:, None, None] * q
         P[sel] = (d1 * a)[:, None, None] * (2.0 * F - (2.0 / 3.0) * I1[:, None, None]
                                             * Finv.transpose(0, 2, 1))
-        self._i1_coef = None
+        co = None
         if tangent:
             al = V0 * d1 * a
             has_qq = bool(np.any(d2))
-            self._i1_coef = {"gg": 4.0 / 9.0 * al * I1, "sw": 2.0 / 3.0 * al * I1,
-                             "fg": -4.0 / 3.0 * al, "dd": 2.0 * al, "f": f,
-                             "qq": V0 * d2 if has_qq else None, "q": q}
-        return float(np.dot(W, V0))
+            co = {"gg": 4.0 / 9.0 * al * I1, "sw": 2.0 / 3.0 * al * I1, "fg": -4.0 / 3.0 * al,
+                  "dd": 2.0 * al, "f": f, "qq": V0 * d2 if has_qq else None, "q": q}
+        return float(np.dot(W, V0)), co
 
     def cauchy_stress(self, ev: SolidEval) -> np.ndarray:
         """Cauchy stress (M, 3, 3) kPa per element: (1/J) P_dev F^T + p I."""

@@ -198,10 +198,11 @@ def test_thread_count_comes_from_the_setting_the_environment_or_the_cores(monkey
 
 @pytest.mark.parametrize("formulation", ["anp", "standard"])
 def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
-    """Element stiffness handed to the matrix block by block as the solid computes it (the
-    path of meshes above one block; here blocks of 50 tets, int32 maps) gives the matrix of
-    the whole-mesh assembly, bit for bit up to summation order, with a closed-form law
-    (Neo-Hookean) and a generic, geometrically linear one (linear) side by side."""
+    """A solid evaluated block by block, its element stiffness handed to the matrix as it
+    is computed (the path of meshes above one block; here blocks of 50 tets, int32 maps),
+    gives the matrix, forces and energy of the whole-mesh evaluation and assembly, bit for
+    bit up to summation order, with a closed-form law (Neo-Hookean) and a generic,
+    geometrically linear one (linear) side by side."""
     import mechanics.solid as solid_mod
     import mechanics.system as system_mod
 
@@ -225,10 +226,12 @@ def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     blocks = ReducedSystem(mesh.tets, solid.n_nodes, ~fixed,
                            solid.used_nodes if formulation == "anp" else None)
     assert blocks.map_uu.dtype == np.int32 and whole.map_uu.dtype == np.int64
+    streamed = _solid(model, mesh.nodes)
+    assert len(solid.blocks) == 1 and len(streamed.blocks) == -(-mesh.n_tets // 50)
     asm = blocks.start()
     seen = []
-    ev2 = solid.evaluate(x, sink=lambda cols, KT: (seen.append(KT.shape[1]),
-                                                   asm.add_stiffness(cols, KT)))
+    ev2 = streamed.evaluate(x, sink=lambda cols, KT: (seen.append(KT.shape[1]),
+                                                      asm.add_stiffness(cols, KT)))
     B = asm.matrix(ev2.dv, pp)
     assert ev2.Kup is None and len(seen) > mesh.n_tets // 50
     # the blocks, then the linear law's elements (and, "standard", their volumetric term)
@@ -236,4 +239,12 @@ def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     assert sum(seen) == mesh.n_tets + n_lin * (2 if formulation == "standard" else 1)
     assert np.array_equal(A.indptr, B.indptr) and np.array_equal(A.indices, B.indices)
     assert np.abs(A.data - B.data).max() <= 1e-12 * np.abs(A.data).max()
-    assert np.array_equal(ev.force, ev2.force)
+    # the nodal forces summed block by block: the same up to summation order
+    assert np.abs(ev.force - ev2.force).max() <= 1e-12 * np.abs(ev.force).max()
+    assert abs(ev.energy - ev2.energy) <= 1e-12 * abs(ev.energy)
+    for a, b in ((ev.F, ev2.F), (ev.P_dev, ev2.P_dev), (ev.dv, ev2.dv)):
+        assert np.array_equal(a, b)
+    # "anp": the nodal volumes summed block by block
+    assert np.abs(ev.p_elem - ev2.p_elem).max() <= 1e-12 * np.abs(ev.p_elem).max()
+    # without a sink the blocks' stiffness is gathered into the whole mesh's
+    assert np.abs(streamed.evaluate(x).Kup - ev.Kup).max() <= 1e-14 * np.abs(ev.Kup).max()
