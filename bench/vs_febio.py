@@ -103,6 +103,8 @@ What each lever bought (counts and CPU; loads as stated):
 - the solid drops F^-1, the element forces, g and the laws' f and q (once transposed) before
   the element stiffness (2026-11-29): 150k NH / Gent peak 1282 / 1285 -> 1170 / 1184 MiB
   (FEBio 988), the same tips; time 21.0 / 18.2 s against FEBio BFGS 58.8 / 59.9 s that day.
+  Then the whole evaluation in element blocks, two passes (F and volumes, then forces and
+  stiffness): 1125 / 1130 MiB (1.14x), 20.0 / 19.6 s; one evaluation 280 -> 297 ms.
 - our children run from byte-compiled modules (compiled before the runs): with
   PYTHONDONTWRITEBYTECODE=1 in the environment each had compiled the solver's modules again,
   0.06-0.1 s per 20k process. Same day, one machine slower than on 2026-11-26 (FEBio BFGS
