@@ -248,3 +248,33 @@ def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     assert np.abs(ev.p_elem - ev2.p_elem).max() <= 1e-12 * np.abs(ev.p_elem).max()
     # without a sink the blocks' stiffness is gathered into the whole mesh's
     assert np.abs(streamed.evaluate(x).Kup - ev.Kup).max() <= 1e-14 * np.abs(ev.Kup).max()
+
+
+def test_a_solve_streamed_in_blocks_matches_the_whole_mesh_one(monkeypatch):
+    """A Newton solve whose solid and assembly go block by block (the path of meshes above
+    one block of 32768 tets; here blocks of 100 tets) reaches the solution of the whole-mesh
+    path, with two closed-form laws side by side in every block (Neo-Hookean, and Gent with
+    its q q stiffness term)."""
+    import mechanics.newton.workspace as workspace_mod
+    import mechanics.solid as solid_mod
+    import mechanics.system as system_mod
+    from mechanics.solver import SolverOptions, solve
+
+    mesh = hemisphere(60.0, 6)
+    region = np.where(np.arange(mesh.n_tets) % 4 == 0, 2, 1)
+    mats = {1: {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
+            2: {"name": "gent", "E": 2.0, "nu": 0.49, "Jm": 5.0}}
+    model = build_model(type(mesh)(mesh.nodes, mesh.tets, region, node_sets=mesh.node_sets),
+                        mats, {"gravity": {"direction": (0, 0, -1)},
+                               "fixed": {"node_set": "fixed"}})
+    opt = SolverOptions(tol=1e-10, threads=1)
+    whole = solve(model, options=opt)
+    for mod in (system_mod, solid_mod, workspace_mod):
+        monkeypatch.setattr(mod, "BLOCK", 100)
+    assert len(_solid(model, mesh.nodes).blocks) == -(-mesh.n_tets // 100) > 1
+    streamed = solve(model, options=opt)
+    assert whole.converged and streamed.converged
+    scale = np.abs(whole.u).max()
+    assert scale > 1.0  # mm: the hemisphere hangs
+    assert np.abs(streamed.u - whole.u).max() <= 1e-8 * scale
+    assert np.abs(streamed.stress - whole.stress).max() <= 1e-8 * np.abs(whole.stress).max()
