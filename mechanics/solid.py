@@ -220,18 +220,17 @@ class Solid:
                 del g
                 KT, extra = self._element_stiffness(b, J[sl], gT, v[sl], dv[sl], p_k[sl], co,
                                                     generic)
-                if sink is None:
-                    if Kup is None:
-                        Kup = KT
-                    else:
-                        Kup[:, sl] = KT
-                else:
+                if sink is not None:
                     sink(sl, KT)
-                for idx, Ke in extra:
-                    if sink is not None:
+                    for idx, Ke in extra:
                         sink(sl.start + idx, Ke.T)
-                    else:
-                        Kup[:, sl.start + idx] += Ke.T
+                    continue
+                for idx, Ke in extra:
+                    KT[:, idx] += Ke.T
+                if Kup is None:
+                    Kup = KT
+                else:
+                    Kup[:, sl] = KT
         return SolidEval(force, None if Kup is None else Kup.T, dv, p_node, p_elem, F, P,
                          energy)
 
