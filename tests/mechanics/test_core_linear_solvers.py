@@ -60,6 +60,12 @@ def test_pardiso_single_precision_is_refined_to_double_accuracy():
     ref.factorize(U, symmetric=True)
     xr = ref.solve(b)
     assert np.abs(x - xr).max() <= 1e-11 * np.abs(xr).max()
+    # once the matrix is let go of (the Newton loop's reusing solves), the factor still
+    # preconditions, bit for bit, and a refined solve asks for a new factorisation
+    lin.forget_matrix()
+    assert np.array_equal(lin.precondition(b), x0) and lin.factor_worth > 0.0
+    with pytest.raises(RuntimeError, match="factorise again"):
+        lin.solve(b)
 
 
 def test_pardiso_falls_back_to_double_precision_when_refinement_stalls():
@@ -225,7 +231,14 @@ def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     monkeypatch.setattr(solid_mod, "BLOCK", 50)
     blocks = ReducedSystem(mesh.tets, solid.n_nodes, ~fixed,
                            solid.used_nodes if formulation == "anp" else None)
-    assert blocks.map_uu.dtype == np.int32 and whole.map_uu.dtype == np.int64
+    # above one block the maps are made per block from the node-pair tables: the same
+    # positions as the whole mesh's stored maps, for a slice and for an index array
+    assert blocks.map_uu is None and whole.map_uu.dtype == np.int64
+    some = np.flatnonzero(region == 2)
+    for cols in (slice(None), slice(50, 100), some):
+        assert np.array_equal(blocks.stiffness_map(cols), whole.stiffness_map(cols))
+        if formulation == "anp":
+            assert np.array_equal(blocks.pressure_map(cols), whole.pressure_map(cols))
     streamed = _solid(model, mesh.nodes)
     assert len(solid.blocks) == 1 and len(streamed.blocks) == -(-mesh.n_tets // 50)
     asm = blocks.start()
