@@ -65,6 +65,9 @@ class ScipySolver:
 
     precondition = solve
 
+    def forget_matrix(self) -> None:
+        """Nothing to let go of: the LU factors are SuperLU's own copy."""
+
 
 def make_linear_solver(name: str, *, threads: int | None = None):
     """Return a solver instance for ``name`` in {"auto", "scipy", "pardiso"} on ``threads``

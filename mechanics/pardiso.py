@@ -210,6 +210,7 @@ class PardisoSolver:
         self.refine_tol = refine_tol
         self._h = None
         self._A = None
+        self._nnz = 0
         self._matvec = None
         self.fallbacks = 0  # double-precision refactorisations after a stalled refinement
         self.refinements = 0  # refinement steps (extra triangular solves)
@@ -232,7 +233,7 @@ class PardisoSolver:
         if not A.has_sorted_indices:
             A = A.copy()
             A.sort_indices()
-        self._A = A
+        self._A, self._nnz = A, A.nnz
         self._mtype = -2 if symmetric else 11
         if symmetric:
             d = A.diagonal()
@@ -257,13 +258,20 @@ class PardisoSolver:
             return 0.0
         # a substitution reads the factor twice: L and L^T (symmetric), or L and U once each
         per = (4 if self._mtype == -2 else 2) * self._h.factor_nonzeros
-        return factorisation_worth(self.name, self._h.factor_flops, per + 2.0 * self._A.nnz
+        return factorisation_worth(self.name, self._h.factor_flops, per + 2.0 * self._nnz
                       * (2 if self._mtype == -2 else 1))
 
     @property
     def memory_mb(self) -> float:
         """The current factor's memory as PARDISO reports it (MB); 0 before the first."""
         return 0.0 if self._h is None else self._h.memory_mb
+
+    def forget_matrix(self) -> None:
+        """Let go of the factorised matrix, which only :meth:`solve` reads (its refinement
+        and a double-precision fallback); the factor stays, for :meth:`precondition`. The
+        Newton loop's later solves with this factor only precondition (150k tets: 24 MB of
+        the solve's peak)."""
+        self._A = self._matvec = None
 
     def precondition(self, b: np.ndarray) -> np.ndarray:
         """One solve with the factor as it is (no refinement): a preconditioner."""
@@ -276,6 +284,9 @@ class PardisoSolver:
         needs no step).
         A single-precision factor whose refinement stalls above 1e-9 is replaced by a
         double-precision one."""
+        if self._A is None:
+            raise RuntimeError("mechanics: PARDISO solve without its matrix (forgotten "
+                               "after the last factorisation); factorise again")
         b = np.asarray(b, dtype=np.float64).ravel()
         x = self.precondition(b)
         self.last_refinements = 0

@@ -104,6 +104,7 @@ class _Directions:
                 self.factored = False
                 raise SingularSystem(f"linear solve residual {err:.2e}")
             self.last_linear_residual = float(err)
+            self.lin.forget_matrix()  # from here the factor only preconditions
         du = np.zeros(3 * self.n)
         du[self.free] = y[: self.sys.n_free]
         return du
