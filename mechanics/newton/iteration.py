@@ -168,26 +168,28 @@ def _line_search(nw: _Newton, u, du, lam: float, R):
     return accepted, valid
 
 
-def _after_modified(nw: _Newton, accepted, u, du, lam, r0: float, rel: float, entry: dict,
-                    it: int):
-    """The line search's accepted point (eta, ev, R, A) after a direction from a matrix
-    without the tensile pressure stiffness, its Newton matrix exact from here on where that
-    direction raised the relative residual (as the next iteration sees it) above ``rel``:
-    the step is kept and the rest of the step uses the exact tangent (20k-tet phantom, 45 deg
-    tilted: 0.77 -> 2.8, then 12 iterations in all against 13 without the option; undoing
-    the step instead took 18)."""
-    rf, rc = nw.norms(accepted[2])
+def _modified_raised(nw: _Newton, R, r0: float, rel: float, entry: dict, it: int) -> bool:
+    """True when a direction from a matrix without the tensile pressure stiffness raised the
+    relative residual (as the next iteration sees it, R the line search's accepted point)
+    above ``rel``: the step is kept and the rest of the step uses the exact tangent, from
+    this point's Newton matrix on (20k-tet phantom, 45 deg tilted: 0.77 -> 2.8, then 12
+    iterations in all against 13 without the option; undoing the step instead took 18)."""
+    rf, rc = nw.norms(R)
     if rf / max(rc, r0, 1e-300) <= rel:
-        return accepted
+        return False
     nw.exact_tangent, nw.no_pressure_stiffness = True, False
     entry["exact_tangent_from"] = it
-    return (accepted[0], *nw.evaluate(u + accepted[0] * du, lam, tangent=True))
+    return True
 
 
-def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
-    """Newton iterations of one load step from ``u`` (the predictor; ``u_start`` the
-    converged displacement the step starts from). Returns (ok, u, ev, reason)."""
+def _newton(nw: _Newton, u, lam, start: list, entry, u_start):
+    """Newton iterations of one load step from ``u`` (the predictor; ``start`` its [ev, R,
+    A], emptied here so that the caller holds no evaluation of its own through the step;
+    ``u_start`` the converged displacement the step starts from). Returns (ok, u, ev,
+    reason); a failed step's ev may be None (nothing reads it)."""
     opt = nw.opt
+    ev, R, A = start
+    start.clear()
     rf, rc = nw.norms(R)
     r0 = rf
     entry["displacement_norms"], entry["energy_norms"] = [], []
@@ -239,11 +241,16 @@ def _newton(nw: _Newton, u, lam, ev, R, A, entry, u_start):
         modified = nw.no_pressure_stiffness  # how A was made (the next line: the trials')
         nw.no_pressure_stiffness = not (nw.exact_tangent or nw.exact) \
             and rel > opt.tensile_pressure_stiffness_below
+        # The line search's trials replace this iterate's evaluation and matrix, and a
+        # failed step returns none: dropped before the trials are evaluated (150k tets:
+        # its F, stress and matrix entries, about 50 MB of the solve's peak).
+        ev = A = None
         accepted, valid_eta = _line_search(nw, u, du, lam, R)
         if accepted is None:
             return False, u, ev, "element inversion (J <= 0) along the Newton direction"
-        if modified:
-            accepted = _after_modified(nw, accepted, u, du, lam, r0, rel, entry, it)
+        if modified and _modified_raised(nw, accepted[2], r0, rel, entry, it):
+            eta, accepted = accepted[0], None  # its matrix goes before the exact one is made
+            accepted = (eta, *nw.evaluate(u + eta * du, lam, tangent=True))
         if it == 0 and from_rest and valid_eta < 1.0 and opt.first_inversion_shrink > 0.0:
             # From rest the first direction is the load times the tangent's response: where
             # it inverts an element unless scaled by eta, the load is too large by about

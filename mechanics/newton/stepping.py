@@ -106,19 +106,19 @@ def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     nw.trace = entry["linear"] = []
     entry["predictor"] = kind
     u_try = _predictor(nw, path, new_lam, guess, kind)
+    start = []  # [ev, R, A] at u_try, handed over to (and emptied by) the iterations
     try:
-        ev, R, A = nw.evaluate(u_try, new_lam, tangent=True)
+        start[:] = nw.evaluate(u_try, new_lam, tangent=True)
     except InvalidConfiguration:
         u_try = path.u.copy()
         u_try[nw.fixed] = new_lam * nw.target[nw.fixed]
         try:
-            ev, R, A = nw.evaluate(u_try, new_lam, tangent=True)
+            start[:] = nw.evaluate(u_try, new_lam, tangent=True)
         except InvalidConfiguration as exc:
-            ev = None
             entry["cutback"] = f"predictor invalid: {exc}"
-    ok = False
-    if ev is not None:
-        ok, u_try, ev, reason = _newton(nw, u_try, new_lam, ev, R, A, entry, path.u)
+    ok, ev = False, None
+    if start:
+        ok, u_try, ev, reason = _newton(nw, u_try, new_lam, start, entry, path.u)
         entry["cutback"] = None if ok else reason
     _step_costs(entry, nw, before)
     entry["converged"] = ok
