@@ -36,7 +36,7 @@ from mechanics.kernels import (
 )
 from mechanics.materials import MATERIALS
 from mechanics.materials.base import IsochoricI1Material
-from mechanics.system import BLOCK  # elements per block handed to a sink
+from mechanics.system import blocks  # the whole mesh, or blocks of system.STREAM
 
 FORMULATIONS = ("anp", "standard")
 _CHUNK = 2048  # elements per block of the stiffness kernel (78 x 2048 doubles: in L2)
@@ -158,8 +158,8 @@ class Solid:
         for n, (_, idx) in enumerate(self.groups):
             law_of[idx] = n
         closed = [isinstance(law, IsochoricI1Material) for law, _ in self.groups]
-        self.blocks = [_Block.make(self, s, min(M, s + BLOCK), law_of, closed)
-                       for s in range(0, M, BLOCK)]
+        self.blocks = [_Block.make(self, sl.start, sl.stop, law_of, closed)
+                       for sl in blocks(M)]
         # dN_a . dN_b for the 10 node pairs a <= b, (10, M): the constant part of the
         # isochoric stiffness of psi(I1bar) laws.
         self.dndn = np.einsum("maJ,maJ->am", self.dN[:, PAIR_A], self.dN[:, PAIR_B])

@@ -36,9 +36,20 @@ _UU = [(_PAIR_OF[i // 3, k // 3], _PAIR_OF[i // 3, k // 3], 3 * (i % 3) + k % 3,
 #: the pair's table of 6 for a first node d, and the step to the second node's place.
 _UP = [(_PAIR_OF[min(j // 12, j % 4), max(j // 12, j % 4)], 4 * (j // 12) + j % 4,
         (j // 4) % 3, 3) for j in range(48)]
-#: Elements per block of the scatter: one bincount over nnz per block, and block-sized
-#: temporaries (78 x 32768 doubles, 20 MB) instead of mesh-sized ones (150k tets: 100 MB).
+#: A mesh of at most BLOCK elements is evaluated and scattered whole, with stored scatter
+#: maps (fastest: the 20k-tet hemisphere's evaluation and assembly 43 ms, in blocks of 16384
+#: 56-67 ms); a larger one streams through blocks of STREAM elements, so that its
+#: temporaries are a block's (78 x 16384 doubles, 10 MB), not the mesh's (150k tets: 100
+#: MB). Measured at 150k tets: blocks of 16384 against 32768, evaluation and assembly
+#: 551-563 against 594-605 ms, the solve's peak 939 against 976 MB.
 BLOCK = 32768
+STREAM = 16384
+
+
+def blocks(M: int) -> list[slice]:
+    """The element blocks of a mesh of M elements: the whole, or STREAM elements each."""
+    step = max(1, M if M <= BLOCK else STREAM)
+    return [slice(s, min(M, s + step)) for s in range(0, M, step)]
 
 
 class ReducedSystem:
@@ -167,8 +178,8 @@ class ReducedSystem:
         """Upper triangle (csr, n x n) from element stiffness (M,78), dv (M,4,3) and the
         pressure block diagonal (n_p,) (negative compliance -V/K)."""
         asm = self.start()
-        for s in range(0, len(Kup), BLOCK):
-            asm.add_stiffness(slice(s, s + BLOCK), Kup[s:s + BLOCK].T)
+        for sl in blocks(len(Kup)):
+            asm.add_stiffness(sl, Kup[sl].T)
         return asm.matrix(dv, pp_diag)
 
 
@@ -214,10 +225,9 @@ class Assembly:
         if self.data is None:
             self.data = np.zeros(s.nnz + 1)
         if s.pidx is not None:
-            M = len(dv)
-            for b in range(0, M, BLOCK):  # entry (l * 4 + a) of an element: dv_l / 4
-                g = np.repeat(0.25 * dv[b:b + BLOCK].reshape(-1, 12).T, 4, axis=0)
-                self._scatter(s.pressure_map(slice(b, b + BLOCK)), g)
+            for sl in blocks(len(dv)):  # entry (l * 4 + a) of an element: dv_l / 4
+                g = np.repeat(0.25 * dv[sl].reshape(-1, 12).T, 4, axis=0)
+                self._scatter(s.pressure_map(sl), g)
             self.data[s.map_pp] += pp_diag
         A = sp.csr_matrix((self.data[: s.nnz], s.indices, s.indptr), shape=(s.n, s.n))
         self.data = None

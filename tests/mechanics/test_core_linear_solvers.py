@@ -209,7 +209,6 @@ def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     gives the matrix, forces and energy of the whole-mesh evaluation and assembly, bit for
     bit up to summation order, with a closed-form law (Neo-Hookean) and a generic,
     geometrically linear one (linear) side by side."""
-    import mechanics.solid as solid_mod
     import mechanics.system as system_mod
 
     mesh = hemisphere(60.0, 6)
@@ -228,7 +227,7 @@ def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     ev = solid.evaluate(x)
     A = whole.assemble(ev.Kup, ev.dv, pp)
     monkeypatch.setattr(system_mod, "BLOCK", 50)
-    monkeypatch.setattr(solid_mod, "BLOCK", 50)
+    monkeypatch.setattr(system_mod, "STREAM", 50)
     blocks = ReducedSystem(mesh.tets, solid.n_nodes, ~fixed,
                            solid.used_nodes if formulation == "anp" else None)
     # above one block the maps are made per block from the node-pair tables: the same
@@ -269,7 +268,6 @@ def test_a_solve_streamed_in_blocks_matches_the_whole_mesh_one(monkeypatch):
     path, with two closed-form laws side by side in every block (Neo-Hookean, and Gent with
     its q q stiffness term)."""
     import mechanics.newton.workspace as workspace_mod
-    import mechanics.solid as solid_mod
     import mechanics.system as system_mod
     from mechanics.solver import SolverOptions, solve
 
@@ -282,9 +280,10 @@ def test_a_solve_streamed_in_blocks_matches_the_whole_mesh_one(monkeypatch):
                                "fixed": {"node_set": "fixed"}})
     opt = SolverOptions(tol=1e-10, threads=1)
     whole = solve(model, options=opt)
-    for mod in (system_mod, solid_mod, workspace_mod):
+    for mod in (system_mod, workspace_mod):
         monkeypatch.setattr(mod, "BLOCK", 100)
-    assert len(_solid(model, mesh.nodes).blocks) == -(-mesh.n_tets // 100) > 1
+    monkeypatch.setattr(system_mod, "STREAM", 70)
+    assert len(_solid(model, mesh.nodes).blocks) == -(-mesh.n_tets // 70) > 1
     streamed = solve(model, options=opt)
     assert whole.converged and streamed.converged
     scale = np.abs(whole.u).max()
