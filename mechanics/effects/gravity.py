@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mechanics.effects.base import Contribution, Effect, Option, Param, register_effect
-from mechanics.kernels import reference_geometry
+from mechanics.kernels import tet_volumes
 
 
 @register_effect
@@ -52,7 +52,7 @@ class Gravity(Effect):
         if self._cache is not None and (self._cache[0] is X or np.array_equal(self._cache[0], X)):
             return self._cache[1]
         mesh = self.mesh
-        _, V0 = reference_geometry(X, mesh.tets)
+        V0 = tet_volumes(X, mesh.tets)
         rho = np.full(mesh.n_tets, self.values["density"])
         for code, value in self.density_by_region.items():
             rho[mesh.region == code] = value
