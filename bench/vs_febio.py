@@ -109,6 +109,14 @@ What each lever bought (counts and CPU; loads as stated):
   PYTHONDONTWRITEBYTECODE=1 in the environment each had compiled the solver's modules again,
   0.06-0.1 s per 20k process. Same day, one machine slower than on 2026-11-26 (FEBio BFGS
   3.2-3.45 s against 2.1-2.8): two runs of 20k NH / Gent, ratio 0.46 / 0.53 and 0.54 / 0.57.
+- memory at 150k (2026-11-29, evening; the README has each step's figure): the scatter in
+  place with np.add.at (no nnz-sized bincount sum, no int64 copy of the map), no evaluation
+  or matrix kept past its use in the Newton loop (PARDISO's solver lets go of the factorised
+  matrix once its refined solve is done), the scatter maps of a mesh above one block made
+  per block from the node-pair tables, and such a mesh streamed in blocks of 16384 tets:
+  1125 / 1130 -> 958 / 960 MiB against FEBio's 988 (0.97x), 13.6 / 13.8 s against 42.0 /
+  46.4 (0.32x / 0.30x); 20k 0.50x / 0.52x, 195 MiB (1.61x)
+  (``bench/results/vs_febio_2026-11-29_streamed16k.json``).
 
 Usage: ``python bench/vs_febio.py [--sizes 20k,150k] [--materials nh,gent]
 [--configs default,...] [--threads N] [--febio live|recorded|none]``; writes
