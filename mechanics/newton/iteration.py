@@ -182,11 +182,18 @@ def _modified_raised(nw: _Newton, R, r0: float, rel: float, entry: dict, it: int
     return True
 
 
+def _record_norms(nw: _Newton, entry: dict, step, u, u_start, R, energy0: float) -> None:
+    """FEBio's displacement and energy norms of an accepted Newton step (``step`` on the
+    free dofs; R the residual there, ``energy0`` the step's |du_0 . R_0|)."""
+    total = float(np.linalg.norm((u - u_start)[nw.free]))
+    entry["displacement_norms"].append(float(np.linalg.norm(step)) / max(total, 1e-300))
+    entry["energy_norms"].append(abs(float(step @ R[nw.free])) / max(energy0, 1e-300))
+
+
 def _newton(nw: _Newton, u, lam, start: list, entry, u_start):
     """Newton iterations of one load step from ``u`` (the predictor; ``start`` its [ev, R,
-    A], emptied here so that the caller holds no evaluation of its own through the step;
-    ``u_start`` the converged displacement the step starts from). Returns (ok, u, ev,
-    reason); a failed step's ev may be None (nothing reads it)."""
+    A], emptied here: the caller keeps no evaluation through the step; ``u_start`` the
+    step's converged start). Returns (ok, u, ev, reason); a failed step's ev may be None."""
     opt = nw.opt
     ev, R, A = start
     start.clear()
@@ -224,26 +231,24 @@ def _newton(nw: _Newton, u, lam, start: list, entry, u_start):
             exact_from = entry["exact_linear_from"] = it
             nw.exact = True
             nw.exact_steps += 1
-        # A reused factorisation is kept while Newton progresses with it: after a reused
-        # direction that did not halve the residual, the next one is factorised anew
-        # (full-000's supine solve from rest at 1 kPa: an inexact step at a relative
-        # residual near 1 stalled there, 50 Newton iterations in 8 steps, 3 cut back; with
-        # this rule 9 in 2 steps, the time of the solve 9.9 -> 3.2 s)
+        # A reused factorisation is kept while Newton halves the residual with it, else the
+        # next direction is factorised anew (full-000's supine solve from rest at 1 kPa:
+        # stalled near 1 on inexact steps, 50 iterations in 8 steps, 3 cut back; with this
+        # rule 9 in 2 steps, the solve 9.9 -> 3.2 s)
         slow = it > 0 and nw.reused and rel > _REUSE_PROGRESS * entry["residuals"][-2]
         du, failure = _direction(nw, A, R, u, rel, entry, first_from_rest=it == 0 and from_rest,
                                  fresh=slow)
         if du is None:
             return False, u, ev, failure
         entry["newton"] += 1
-        if energy0 is None:
-            R0_free = R[nw.free].copy()
+        if energy0 is None:  # the step's first direction and residual
+            energy0 = abs(float(du[nw.free] @ R[nw.free]))
         entry.setdefault("linear_residuals", []).append(nw.last_linear_residual)
         modified = nw.no_pressure_stiffness  # how A was made (the next line: the trials')
         nw.no_pressure_stiffness = not (nw.exact_tangent or nw.exact) \
             and rel > opt.tensile_pressure_stiffness_below
-        # The line search's trials replace this iterate's evaluation and matrix, and a
-        # failed step returns none: dropped before the trials are evaluated (150k tets:
-        # its F, stress and matrix entries, about 50 MB of the solve's peak).
+        # the trials replace this iterate's evaluation and matrix (a failed step returns
+        # none): dropped before they are made (150k tets: about 50 MB of the peak)
         ev = A = None
         accepted, valid_eta = _line_search(nw, u, du, lam, R)
         if accepted is None:
@@ -260,12 +265,7 @@ def _newton(nw: _Newton, u, lam, start: list, entry, u_start):
                                   f"scaled by {valid_eta:.3g}")
         eta, ev, R, A = accepted
         u = u + eta * du
-        if energy0 is None:
-            energy0 = abs(float(du[nw.free] @ R0_free))
-        step = eta * du[nw.free]
-        total = float(np.linalg.norm((u - u_start)[nw.free]))
-        entry["displacement_norms"].append(float(np.linalg.norm(step)) / max(total, 1e-300))
-        entry["energy_norms"].append(abs(float(step @ R[nw.free])) / max(energy0, 1e-300))
+        _record_norms(nw, entry, eta * du[nw.free], u, u_start, R, energy0)
         rf, rc = nw.norms(R)
         if not np.isfinite(rf):
             return False, u, ev, "residual is not finite"
