@@ -89,6 +89,11 @@ _PAIR_OF = {(int(a), int(b)): n for n, (a, b) in enumerate(zip(PAIR_A, PAIR_B, s
 DIAG_PAIR = np.array([_PAIR_OF[(int(A1[r]), int(B1[r]))] for r in DIAG_ROWS])
 
 
+def pair_dots(dN: np.ndarray) -> np.ndarray:
+    """dN_a . dN_b (10, M) for the 10 node pairs a <= b (PAIR_A, PAIR_B) of each tet."""
+    return np.einsum("maJ,maJ->am", dN[:, PAIR_A], dN[:, PAIR_B])
+
+
 def det_inv(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Determinant (M,) and inverse (M, 3, 3) of 3x3 matrices by cofactors (no LAPACK)."""
     a, b, c = F[:, 0, 0], F[:, 0, 1], F[:, 0, 2]

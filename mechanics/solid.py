@@ -23,14 +23,13 @@ from mechanics.kernels import (
     DIAG_ROWS,
     IU,
     JU,
-    PAIR_A,
-    PAIR_B,
     SW1,
     SW2,
     det_inv,
     element_force,
     element_stiffness,
     full_from_upper78,
+    pair_dots,
     reference_geometry,
     upper_outer,
 )
@@ -160,9 +159,9 @@ class Solid:
         closed = [isinstance(law, IsochoricI1Material) for law, _ in self.groups]
         self.blocks = [_Block.make(self, sl.start, sl.stop, law_of, closed)
                        for sl in blocks(M)]
-        # dN_a . dN_b for the 10 node pairs a <= b, (10, M): the constant part of the
-        # isochoric stiffness of psi(I1bar) laws.
-        self.dndn = np.einsum("maJ,maJ->am", self.dN[:, PAIR_A], self.dN[:, PAIR_B])
+        # dN_a . dN_b of the 10 node pairs, the constant part of the isochoric stiffness of
+        # psi(I1bar) laws: kept for one block, else made per block (150k tets: 12 MB).
+        self.dndn = pair_dots(self.dN) if len(self.blocks) == 1 else None
 
     def evaluate(self, x: np.ndarray, *, tangent: bool = True, sink=None,
                  tensile_pressure_stiffness: bool = True) -> SolidEval:
@@ -307,7 +306,7 @@ class Solid:
                 qT[:, sel] = co["q"].reshape(-1, 12).T
                 c_qq[sel] = co["qq"]
             del co["q"]
-        dndn = self.dndn[:, b.sl]
+        dndn = self.dndn[:, b.sl] if self.dndn is not None else pair_dots(self.dN[b.sl])
         KT = np.empty((78, M))  # element index last: fast gathers
         for s in range(0, M, _CHUNK):  # bounded temporaries, cache reuse
             e = min(M, s + _CHUNK)
