@@ -103,3 +103,16 @@ def test_patch_test_linear_field_reproduced_exactly(formulation):
     eps = 0.5 * (G + G.T)
     sig = 2 * MU * (eps - np.trace(eps) / 3 * np.eye(3)) + K * np.trace(eps) * np.eye(3)
     assert np.max(np.abs(st.stress - sig)) <= 1e-9 * np.abs(sig).max()
+
+
+def test_tet_volumes_fill_the_cube_and_match_the_reference_geometry():
+    """The volumes gravity weighs (``tet_volumes``) are the solid's (``reference_geometry``)
+    to rounding, all positive on a valid mesh, and sum to the unit cube's volume."""
+    from mechanics.kernels import reference_geometry, tet_volumes
+
+    mesh = irregular_cube(3, seed=7, amplitude=0.3)
+    V = tet_volumes(mesh.nodes, mesh.tets)
+    _, V0 = reference_geometry(mesh.nodes, mesh.tets)
+    assert np.all(V > 0.0)
+    assert np.abs(V - V0).max() <= 1e-14
+    assert abs(V.sum() - 1.0) <= 1e-12
