@@ -116,7 +116,9 @@ What each lever bought (counts and CPU; loads as stated):
   per block from the node-pair tables, and such a mesh streamed in blocks of 16384 tets:
   1125 / 1130 -> 958 / 960 MiB against FEBio's 988 (0.97x), 13.6 / 13.8 s against 42.0 /
   46.4 (0.32x / 0.30x); 20k 0.50x / 0.52x, 195 MiB (1.61x)
-  (``bench/results/vs_febio_2026-11-29_streamed16k.json``).
+  (``bench/results/vs_febio_2026-11-29_streamed16k.json``). With dN.dN made per block as
+  well, on a slower hour (FEBio 3.3-3.7 s at 20k): 150k 946 / 948 MiB (0.96x), 0.31x /
+  0.33x; 20k 0.51x / 0.55x, 196 / 195 MiB (``vs_febio_2026-11-29_final.json``).
 
 Usage: ``python bench/vs_febio.py [--sizes 20k,150k] [--materials nh,gent]
 [--configs default,...] [--threads N] [--febio live|recorded|none]``; writes
