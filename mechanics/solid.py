@@ -151,7 +151,7 @@ class Solid:
     def _prepare_fast_paths(self) -> None:
         """Constant data of the vectorised kernels (built once per reference configuration):
         the element blocks an evaluation streams through (:class:`_Block`: their laws and
-        node-element incidence) and the constant dN_a . dN_b of every element."""
+        node-element incidence) and, on a mesh of one block, every element's dN_a . dN_b."""
         M = len(self.tets)
         law_of = np.empty(M, np.int64)  # each element's group
         for n, (_, idx) in enumerate(self.groups):
