@@ -18,7 +18,6 @@ from mechanics.newton.residual import _constraints, _effects, _solid, _system
 from mechanics.newton.verdicts import _check_rigid_modes
 from mechanics.pattern import KeptPattern
 from mechanics.solid import InvalidConfiguration
-from mechanics.system import BLOCK
 
 
 class _Newton(_Directions):
@@ -86,7 +85,7 @@ class _Newton(_Directions):
         # On a mesh of more than one block the bulk's element stiffness goes into the matrix
         # block by block as it is computed (150k tets: peak 1494 -> 1345-1361 MB); a smaller one
         # is scattered after its evaluation, which measured faster (20k: 30 against 47 ms).
-        stream = tangent and len(self.solid.V0) > BLOCK
+        stream = tangent and len(self.solid.blocks) > 1  # the solid's blocks (system.blocks)
         asm = self.sys.start() if stream else None
         ev = self.solid.evaluate(x, tangent=tangent, sink=asm.add_stiffness if stream else None,
                                  tensile_pressure_stiffness=not self.no_pressure_stiffness)

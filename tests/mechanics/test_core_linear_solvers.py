@@ -205,7 +205,7 @@ def test_thread_count_comes_from_the_setting_the_environment_or_the_cores(monkey
 @pytest.mark.parametrize("formulation", ["anp", "standard"])
 def test_streamed_assembly_equals_the_whole_mesh_one(monkeypatch, formulation):
     """A solid evaluated block by block, its element stiffness handed to the matrix as it
-    is computed (the path of meshes above one block; here blocks of 50 tets, int32 maps),
+    is computed (the path of meshes above one block; here blocks of 50 tets, maps per block),
     gives the matrix, forces and energy of the whole-mesh evaluation and assembly, bit for
     bit up to summation order, with a closed-form law (Neo-Hookean) and a generic,
     geometrically linear one (linear) side by side."""
@@ -267,7 +267,6 @@ def test_a_solve_streamed_in_blocks_matches_the_whole_mesh_one(monkeypatch):
     one block of 32768 tets; here blocks of 100 tets) reaches the solution of the whole-mesh
     path, with two closed-form laws side by side in every block (Neo-Hookean, and Gent with
     its q q stiffness term)."""
-    import mechanics.newton.workspace as workspace_mod
     import mechanics.system as system_mod
     from mechanics.solver import SolverOptions, solve
 
@@ -280,8 +279,7 @@ def test_a_solve_streamed_in_blocks_matches_the_whole_mesh_one(monkeypatch):
                                "fixed": {"node_set": "fixed"}})
     opt = SolverOptions(tol=1e-10, threads=1)
     whole = solve(model, options=opt)
-    for mod in (system_mod, workspace_mod):
-        monkeypatch.setattr(mod, "BLOCK", 100)
+    monkeypatch.setattr(system_mod, "BLOCK", 100)
     monkeypatch.setattr(system_mod, "STREAM", 70)
     assert len(_solid(model, mesh.nodes).blocks) == -(-mesh.n_tets // 70) > 1
     streamed = solve(model, options=opt)
