@@ -310,6 +310,14 @@ def test_skin_rim_off_muscle_takes_the_wedge_in_front_of_the_wall_only():
     kept, rim = skin_rim_off_muscle(wall | thicker, wall | thicker, thorax, ~(wall | thicker),
                                     np.zeros_like(body), sp)
     assert not rim.any()
+    # the contour climbed on from the wedge over the mound's skin (its front half: runs
+    # along the posterior axis that start on the breast's fat, not at the back): that skin
+    # goes to the breast too, and still nothing of the wall
+    climbed = wedge | (skin & (y < 30))
+    kept, rim = skin_rim_off_muscle(wall | thicker | climbed, body, thorax, air,
+                                    mound & ~climbed, sp)
+    assert rim[skin & (y < 30)].all()
+    assert not (rim & (wall | thicker)).any()
 
 
 # Measured when written, supine, FEBio-deformed scans of bench/validate.py (skin voxels of
