@@ -71,9 +71,8 @@ from imaging.segment_regions import (
     SegmentationError,
     _components,
     _interior_median,
-    glands_off_muscle,
-    skin_rim_off,
 )
+from imaging.segment_wall import glands_off_muscle, skin_rim_off
 
 #: Gland and fat levels closer than this fraction of the fat level are one class (no gland).
 GLAND_MIN_CONTRAST = 0.2
@@ -287,9 +286,9 @@ def _regions(pre, a, sp, order, notes, *, skin_level, opts) -> tuple[str, dict, 
 def _glands_off(r: dict, a: np.ndarray, sp: np.ndarray, kind: str, notes: list, *,
                 seeds, min_region_mm3: float, posterior: tuple[int, bool]) -> None:
     """Glands the muscle's region took in go back to the breast
-    (:func:`imaging.segment_regions.glands_off_muscle`), in place; with fat suppressed their
+    (:func:`imaging.segment_wall.glands_off_muscle`), in place; with fat suppressed their
     level is the gland's. Then the breast's skin at its rim
-    (:func:`imaging.segment_regions.skin_rim_off`). A user's muscle seed has the last word:
+    (:func:`imaging.segment_wall.skin_rim_off`). A user's muscle seed has the last word:
     then nothing is taken."""
     if any(s.label == MUSCLE for s in seeds):
         return

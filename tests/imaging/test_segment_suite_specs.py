@@ -20,13 +20,8 @@ from imaging.labels import BREAST, MUSCLE
 from imaging.qa import dice
 from imaging.segment import SegmentationError, _breast_specks_off, segment_volume
 from imaging.segment_fat_suppressed import _muscle_air_edge
-from imaging.segment_regions import (
-    _half_thickness,
-    _interior_median,
-    _muscle_start,
-    glands_off_muscle,
-    skin_rim_off_muscle,
-)
+from imaging.segment_regions import _interior_median, _muscle_start
+from imaging.segment_wall import _half_thickness, glands_off_muscle, skin_rim_off_muscle
 
 
 def render_supine(seed: int, root):
