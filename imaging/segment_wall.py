@@ -116,9 +116,10 @@ def _glands_off(muscle, body, thorax, sp, *, min_mm3, thickness_factor, breast_s
     return np.isin(glab, np.unique(glab[blobs])) & (glab > 0)
 
 
-#: Depth below the air (mm) within which muscle beyond the wall's thickness, touching the
-#: breast, is the breast's skin (:func:`skin_rim_off_muscle`): the skin is 1.5-2 mm thick on
-#: the suite's half-size phantoms, and a voxel of partial volume lies over it.
+#: Depth below the air (mm) within which muscle beyond the wall's thickness (or in front of
+#: breast tissue), touching the breast, is the breast's skin (:func:`skin_rim_off_muscle`):
+#: the skin is 1.5-2 mm thick on the suite's half-size phantoms, 2 on the full-size
+#: full-000, and a voxel of partial volume lies over it.
 SKIN_RIM_MM = 3.0
 
 

@@ -305,8 +305,8 @@ def test_skin_rim_off_muscle_takes_the_wedge_in_front_of_the_wall_only():
     kept, rim = skin_rim_off_muscle(wall | thicker, wall | thicker, thorax, ~(wall | thicker),
                                     np.zeros_like(body), sp)
     assert not rim.any()
-    # the contour climbed on from the wedge over the mound's skin (its front half: runs
-    # along the posterior axis that start on the breast's fat, not at the back): that skin
+    # the contour climbed on from the wedge over the mound's skin (its front half: the
+    # breast's fat and then the wall lie behind it along the posterior axis): that skin
     # goes to the breast too, and still nothing of the wall
     climbed = wedge | (skin & (y < 30))
     kept, rim = skin_rim_off_muscle(wall | thicker | climbed, body, thorax, air,
