@@ -152,7 +152,7 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     skin of both breasts' lower poles: in the tilted scan 33k voxels of the truth's breast
     were muscle, most of them such skin; the measured skin lost them (and the faces within
     a voxel of them: 18 % of the truth's skin more than 3 mm from it) and the held-out
-    tilted MHD read 2.54 mm with the model's landmarks within 0.11 mm of the truth's.
+    tilted MHD read 2.54 mm with the model's gland centres within 0.11 mm of the truth's.
 
     Returns
     -------
