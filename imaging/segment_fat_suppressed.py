@@ -13,6 +13,7 @@ from imaging.segment_contrast import (
     _require_cnr,
     air_noise,
     contrast_to_noise,
+    tissue_floor,
 )
 from imaging.segment_regions import (
     STAGE,
@@ -38,10 +39,10 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
     whereas fat lies under the skin. So:
 
     1. air: the dark regions reaching the field of view's edge, below the midpoint of the
-       background and the darkest tissue (the 10th percentile of what rises five noise
-       sigmas above the background), refined by a threshold level set; then the body's
-       outer voxels darker than half their brightest body neighbour (partial volume of the
-       skin, or of a muscle meeting air) go to the air;
+       background and the darkest tissue (the 10th percentile of what rises above
+       :func:`~imaging.segment_contrast.tissue_floor`), refined by a threshold level set;
+       then the body's outer voxels darker than half their brightest body neighbour
+       (partial volume of the skin, or of a muscle meeting air) go to the air;
     2. the body's interior is split at each of the two thresholds of a three-class Otsu of
        its histogram; dark regions that stay more than 4 mm (plus three voxels) from the
        air are the thorax interior; the first threshold that leaves one is the muscle's
@@ -92,12 +93,13 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
 
 def _edge_air(a, sp, *, min_region_mm3, name):
     """Step 1's start: the dark regions reaching the field of view's edge, below the midpoint
-    of the background and the darkest tissue (the 10th percentile of what rises five noise
-    sigmas above the background). Returns (air, background level, darkest tissue level,
-    that midpoint)."""
+    of the background and the darkest tissue (the 10th percentile of what rises above
+    :func:`~imaging.segment_contrast.tissue_floor`: five noise sigmas, and enough that the
+    partial-volume surface of a high-SNR scan stays out). Returns (air, background level,
+    darkest tissue level, that midpoint)."""
     vox_mm3 = float(np.prod(sp))
     peak, sigma = air_noise(a)
-    rough = a > peak + 5.0 * sigma
+    rough = a > tissue_floor(peak, sigma)
     vals = a[::2, ::2, ::2][rough[::2, ::2, ::2]]
     if vals.size < 100:
         raise SegmentationError(f"{STAGE}: {name}: no body found above the background noise "
