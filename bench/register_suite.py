@@ -4,6 +4,13 @@ the transform the stage uses, the correlation's (refined) and the markers' (fidu
     python bench/register_suite.py --work bench/validation_work           # seeds 0-11
     python bench/register_suite.py --size full --seeds 0 --arms truth_labels,pipeline
     python bench/register_suite.py --seeds 7,10 --register '{"base_margin_mm": 0}'
+    python bench/register_suite.py --family '{"snr": 10000, "bias": 0}' --work W2 \
+        --cache bench/validation_work/truth_cache                 # clean images, same truth
+
+``--family`` overrides fields of the drawn subjects (``breastmodel.phantom.family.draw_spec``):
+with the noise and the bias field taken out (the same anatomy, motions and FEBio truth), what
+is left of the TRE is the anatomy's own deformation between positions and the partial-volume
+images, the floor of a rigid registration of what the scans show.
 
 Subjects come from the phantom family as in ``bench/validate.py`` (their FEBio truth cached
 under ``--work``/truth_cache; the same ``--work`` reuses them). Arms: ``truth_labels`` (the
@@ -77,6 +84,10 @@ def main(argv=None) -> int:
     ap.add_argument("--febio", default=None)
     ap.add_argument("--register", default="{}",
                     help='JSON: more [register] keys, e.g. \'{"base_margin_mm": 0}\'')
+    ap.add_argument("--cache", type=Path, default=None,
+                    help="truth cache (default WORK/truth_cache)")
+    ap.add_argument("--family", default="{}",
+                    help='JSON: fields of the drawn subjects, e.g. \'{"snr": 10000, "bias": 0}\'')
     ap.add_argument("--json", type=Path,
                     default=ROOT / "bench" / "results" / "register_suite.json")
     args = ap.parse_args(argv)
@@ -87,8 +98,9 @@ def main(argv=None) -> int:
     from breastmodel.febio import find_febio
     from breastmodel.validation import family_maker
 
+    family = json.loads(args.family)
     make = family_maker(size=args.size, febio=str(find_febio(args.febio)),
-                        cache=args.work / "truth_cache")
+                        cache=args.cache or args.work / "truth_cache", **family)
     rows = []
     print(f"{'subject':10s} {'arm':12s} {'position':18s} {'status':10s} "
           f"{'TRE used':>12s} {'refined':>12s} {'fiducials':>12s}   (mean/max mm)")
@@ -108,7 +120,7 @@ def main(argv=None) -> int:
                       f"{_cell(r['used']):>12s} {_cell(r['refined']):>12s} "
                       f"{_cell(r['fiducials']):>12s}", flush=True)
     write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-                           "size": args.size, "register": extra,
+                           "size": args.size, "register": extra, "family": family,
                            "rows": rows})
     print(f"wrote {args.json}")
     return 0
