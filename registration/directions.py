@@ -11,7 +11,7 @@ the mask's radius of gyration, so all six directions are in mm and comparable.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import SimpleITK as sitk
@@ -41,14 +41,23 @@ class Directions:
     ratios: np.ndarray
     loose: np.ndarray
 
+    def rotations(self) -> np.ndarray:
+        """Which of the six directions are rotations (most of their length in the rotation
+        part), the others translations."""
+        return np.linalg.norm(self.vectors[:3], axis=0) > 0.5
+
+    def translations(self) -> Directions:
+        """A copy whose loose directions are only the translations."""
+        return replace(self, loose=self.loose & ~self.rotations())
+
     def describe(self) -> list[str]:
         """One phrase per loose direction, e.g. ``"translation (0.00, 0.02, 1.00)"``."""
         out = []
+        rotations = self.rotations()
         for k in np.flatnonzero(self.loose):
             v = self.vectors[:, k]
-            rot = float(np.linalg.norm(v[:3]))
-            kind = "rotation" if rot > 0.5 else "translation"
-            axis = v[:3] if rot > 0.5 else v[3:]
+            kind = "rotation" if rotations[k] else "translation"
+            axis = v[:3] if rotations[k] else v[3:]
             axis = axis / max(np.linalg.norm(axis), 1e-12)
             out.append(f"{kind} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}), "
                        f"sharpness {self.ratios[k]:.4f}")

@@ -60,6 +60,30 @@ def test_the_blend_takes_only_the_loose_directions():
     assert zero < 1e-9
 
 
+def test_a_loose_turn_is_not_taken_from_a_second_estimate():
+    """A round cylinder leaves its axis loose twice, along it and about it. Markers dragged
+    round the body by the skin turn the second estimate about the axis: only the shift along
+    it is taken (``Directions.translations``)."""
+    img, mask = _image(lambda x, y, z: x ** 2 + y ** 2 <= 18.0 ** 2)
+    d = loose_directions(img, mask)
+    assert d.loose.sum() == 2 and d.rotations()[d.loose].sum() == 1
+    t = d.translations()
+    assert t.loose.sum() == 1 and not t.rotations()[t.loose].any()
+    assert abs(t.vectors[5, t.loose][0]) > 0.99  # the shift along z
+    assert any(w.startswith("rotation (") for w in d.describe())
+    base = sitk.Euler3DTransform()
+    other = sitk.Euler3DTransform()
+    other.SetRotation(0.0, 0.0, np.radians(2.0))  # turned about the axis
+    other.SetTranslation((0.0, 0.0, 1.5))
+    out, moved = blend_loose(base, other, t)
+    rel = transform_to_matrix(out)
+    assert np.degrees(Rotation.from_matrix(rel[:3, :3]).magnitude()) < 0.05
+    np.testing.assert_allclose(rel[:3, 3], [0.0, 0.0, 1.5], atol=0.05)
+    turned, _ = blend_loose(base, other, d)  # every loose direction: the turn comes along
+    assert np.degrees(Rotation.from_matrix(transform_to_matrix(turned)[:3, :3])
+                      .magnitude()) > 1.9
+
+
 def _torso(shift_mm, markers, drag_mm) -> sitk.Image:
     """A torso-like volume (1 mm voxels): an elliptic body along z, an inner 'thorax' darker
     than it, and bright marker balls on the body's surface at ``markers``; all shifted by
