@@ -49,6 +49,7 @@ from imaging.levelset import MAX_COARSE_MM, levelset_refine
 from imaging.segment_confidence import (
     BREAST_ML_RANGE,
     _dice,
+    breast_behind_wall_mm,
     breast_volumes_by_side,
     segmentation_confidence,
 )
@@ -187,19 +188,27 @@ def segment_volume(
                 marker_diameter_mm=marker_diameter_mm, min_region_mm3=min_region_mm3,
                 muscle_min_mm=muscle_min_mm, name=name, levelset_shrink=levelset_shrink)
     kind, r, notes = _regions(pre, a, sp, order, notes, skin_level=skin_level, opts=opts)
+    posterior = _posterior_axis(pre.GetDirection())
     _glands_off(r, a, sp, kind, notes, seeds=seeds, min_region_mm3=min_region_mm3,
-                posterior=_posterior_axis(pre.GetDirection()))
+                posterior=posterior)
     labels = _label_map(a, pre, r, kind, notes, seeds=seeds, gland=gland, vox_mm3=vox_mm3,
                         min_region_mm3=min_region_mm3)
     out = _on_input_grid(labels, pre, work, img, box, isotropic_mm)
-    breast_ml = float(np.count_nonzero((labels == BREAST) | (labels == GLAND))) * vox_mm3 / 1e3
-    conf = segmentation_confidence(cnr=r["cnr"], body=(r["body_start"], r["body"]),
-                                   muscle=(r["muscle_start"], r["muscle"]), breast_ml=breast_ml,
-                                   noise=noise)
+    conf = _confidence(r, labels, sp, posterior, noise)
     notes += conf["warnings"]
     return SegmentationResult(out, pre, {k: float(v) for k, v in r["lv"].items()},
                               _midline_x(pre, r["thorax"], r["muscle"]),
                               np.asarray(r["markers_mm"]), tuple(notes), conf, kind)
+
+
+def _confidence(r: dict, labels: np.ndarray, sp: np.ndarray, posterior, noise) -> dict:
+    """:func:`segmentation_confidence` of the regions ``r`` and their label map."""
+    breast_ml = float(np.count_nonzero((labels == BREAST) | (labels == GLAND))
+                      * np.prod(sp)) / 1e3
+    return segmentation_confidence(
+        cnr=r["cnr"], body=(r["body_start"], r["body"]), muscle=(r["muscle_start"], r["muscle"]),
+        breast_ml=breast_ml, noise=noise,
+        breast_behind_wall_mm=breast_behind_wall_mm(labels, sp, posterior))
 
 
 def _label_map(a, pre, r, kind, notes, *, seeds, gland, vox_mm3, min_region_mm3) -> np.ndarray:

@@ -135,7 +135,8 @@ def segment_position(
 
 def _stop_if_it_does_not_hold(res, summary, out: Path, stop: float, *, img_path) -> None:
     """Stop (after the label map and QA picture are written, for a look) when a region's
-    two estimates agree below ``stop`` (0: never) or the breast volume is implausible."""
+    two estimates agree below ``stop`` (0: never), the breast volume is implausible or the
+    breast tissue lies behind the chest wall (a contrast read wrong)."""
     from breastmodel.errors import StageError
 
     conf = res.confidence
@@ -144,6 +145,9 @@ def _stop_if_it_does_not_hold(res, summary, out: Path, stop: float, *, img_path)
            f"(< {stop:g})" for k, v in low.items()]
     if stop > 0 and not conf.get("breast_ml_plausible", True):
         bad.append(f"{conf['breast_ml']:.1f} ml of breast tissue is not plausible")
+    behind = conf.get("breast_behind_wall_mm")
+    if stop > 0 and behind is not None and behind >= 0:
+        bad.append(f"the breast tissue lies {behind:.1f} mm behind the chest wall")
     if bad:
         raise StageError(
             "segment", "the segmentation does not hold up: " + "; ".join(bad)
