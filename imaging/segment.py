@@ -203,11 +203,10 @@ def segment_volume(
 
 def _confidence(r: dict, labels: np.ndarray, sp: np.ndarray, posterior, noise) -> dict:
     """:func:`segmentation_confidence` of the regions ``r`` and their label map."""
-    breast_ml = float(np.count_nonzero((labels == BREAST) | (labels == GLAND))
-                      * np.prod(sp)) / 1e3
+    breast_ml = np.count_nonzero((labels == BREAST) | (labels == GLAND)) * np.prod(sp) / 1e3
     return segmentation_confidence(
         cnr=r["cnr"], body=(r["body_start"], r["body"]), muscle=(r["muscle_start"], r["muscle"]),
-        breast_ml=breast_ml, noise=noise,
+        breast_ml=float(breast_ml), noise=noise,
         breast_behind_wall_mm=breast_behind_wall_mm(labels, sp, posterior))
 
 
