@@ -64,8 +64,8 @@ def segmentation_confidence(
     -------
     dict
         ``cnr``, ``agreement`` (Dice per region), ``breast_ml``, ``breast_ml_plausible``
-        (within ``BREAST_ML_RANGE``), ``breast_behind_wall_mm``, ``warnings`` and
-        ``confident`` (no warning).
+        (within ``BREAST_ML_RANGE``), ``breast_behind_wall_mm``, ``breast_in_front`` (it is
+        below 0 or unknown), ``warnings`` and ``confident`` (no warning).
     """
     agree = {"body": _dice(*body), "muscle": _dice(*muscle)}
     floor = dict(MIN_AGREEMENT) if min_agreement is None else (
@@ -83,7 +83,8 @@ def segmentation_confidence(
         warnings.append(f"low confidence: {breast_ml:.1f} ml of breast tissue is outside the "
                         f"plausible {lo:g}-{hi:g} ml")
     behind = breast_behind_wall_mm
-    if behind is not None and behind >= 0:
+    in_front = behind is None or behind < 0
+    if not in_front:
         warnings.append(f"low confidence: the breast tissue lies {behind:.1f} mm behind the "
                         "chest wall (median depths along the posterior axis; breasts lie in "
                         "front of it): was the contrast read right? ([segment] contrast = "
@@ -92,6 +93,7 @@ def segmentation_confidence(
             "noise": float(noise) if noise is not None and np.isfinite(noise) else None,
             "breast_ml_plausible": bool(plausible),
             "breast_behind_wall_mm": None if behind is None else float(behind),
+            "breast_in_front": bool(in_front),
             "warnings": warnings, "confident": not warnings}
 
 

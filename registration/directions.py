@@ -50,6 +50,10 @@ class Directions:
         """A copy whose loose directions are only the translations."""
         return replace(self, loose=self.loose & ~self.rotations())
 
+    def turns(self) -> Directions:
+        """A copy whose loose directions are only the rotations."""
+        return replace(self, loose=self.loose & self.rotations())
+
     def describe(self) -> list[str]:
         """One phrase per loose direction, e.g. ``"translation (0.00, 0.02, 1.00)"``."""
         out = []

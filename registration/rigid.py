@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import SimpleITK as sitk
@@ -286,7 +286,7 @@ def _set_loose(fixed, moving, init, wall, chest, notes, *, levels, balls, radius
             notes.append("the chest wall pins every rigid direction (weakest sharpness "
                          f"{dirs.ratios[0]:.3f}): the markers only check the registration")
         return wall
-    turns = replace(dirs, loose=dirs.loose & dirs.rotations())
+    turns = dirs.turns()
     if turns.loose.any():
         notes.append("the chest wall leaves " + "; ".join(turns.describe()) + " loose: "
                      "kept as the wall sets it (markers and the breasts' base move with the "

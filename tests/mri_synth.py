@@ -156,3 +156,24 @@ def write_subject(folder, images: dict, *, fiducials: dict | None = None,
             for p, pts in fiducials.items() for k, v in pts.items()]
         (folder / "fiducials.csv").write_text("\n".join(rows) + "\n")
     return folder
+
+
+def render_family_supine(seed: int, root, *, snr: float | None = None,
+                         bias: float | None = None):
+    """(spec, supine scan, its truth labels) of the validation suite's small subject
+    ``seed`` (``draw_spec(seed, size="small")``), rendered under ``root`` by the renderer
+    ``make_subject`` uses, with rigid motion only (no FE truth is needed to score a
+    segmentation); at the drawn SNR and bias unless given."""
+    from breastmodel.phantom import make_phantom
+    from breastmodel.phantom.family import draw_spec
+    from imaging.io import read_volume
+
+    spec = draw_spec(seed, size="small")
+    out = Path(root) / "subject"
+    make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
+                 snr=snr or spec.snr, bias=spec.bias if bias is None else bias,
+                 positions=("supine",), contrast=spec.contrast,
+                 fat_suppressed=spec.fat_suppressed, max_rotation_deg=spec.max_rotation_deg,
+                 max_translation_mm=spec.max_translation_mm, progress=False)
+    return (spec, read_volume(out / "supine.nii.gz"),
+            read_volume(Path(root) / "subject_truth" / "supine_labels.nii.gz"))

@@ -145,9 +145,9 @@ def _stop_if_it_does_not_hold(res, summary, out: Path, stop: float, *, img_path)
            f"(< {stop:g})" for k, v in low.items()]
     if stop > 0 and not conf.get("breast_ml_plausible", True):
         bad.append(f"{conf['breast_ml']:.1f} ml of breast tissue is not plausible")
-    behind = conf.get("breast_behind_wall_mm")
-    if stop > 0 and behind is not None and behind >= 0:
-        bad.append(f"the breast tissue lies {behind:.1f} mm behind the chest wall")
+    if stop > 0 and not conf.get("breast_in_front", True):
+        bad.append(f"the breast tissue lies {conf['breast_behind_wall_mm']:.1f} mm behind the "
+                   "chest wall")
     if bad:
         raise StageError(
             "segment", "the segmentation does not hold up: " + "; ".join(bad)

@@ -13,7 +13,7 @@ T2 0.981 / 0.975, slab 0.951 / 0.984.
 import numpy as np
 import pytest
 import SimpleITK as sitk
-from mri_synth import Slab, render, write_subject
+from mri_synth import Slab, render, render_family_supine, write_subject
 
 from imaging.io import read_volume
 from imaging.preprocess import preprocess
@@ -92,24 +92,6 @@ def test_no_muscle_with_either_contrast_names_file_and_both_reasons():
     assert "muscle" in msg and "either contrast" in msg
 
 
-def _family_supine(seed, tmp_path, *, snr=None, bias=None):
-    """(spec, supine scan, its truth labels) of the suite's small subject ``seed``, rendered
-    from its spec by the renderer make_subject uses (rigid motion only: no FE truth is
-    needed to score a segmentation), at its drawn SNR and bias unless given."""
-    from breastmodel.phantom import make_phantom
-    from breastmodel.phantom.family import draw_spec
-
-    spec = draw_spec(seed, size="small")
-    out = tmp_path / "subject"
-    make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
-                 snr=snr or spec.snr, bias=spec.bias if bias is None else bias,
-                 positions=("supine",), contrast=spec.contrast,
-                 fat_suppressed=spec.fat_suppressed, max_rotation_deg=spec.max_rotation_deg,
-                 max_translation_mm=spec.max_translation_mm, progress=False)
-    return (spec, read_volume(out / "supine.nii.gz"),
-            read_volume(tmp_path / "subject_truth" / "supine_labels.nii.gz"))
-
-
 @pytest.mark.parametrize("seed, fov, snr, bias", [
     (0, "coil", None, None), (0, "coil", 300.0, 0.0), (1, "slab", 100.0, None)])
 def test_validation_family_fat_suppressed_subject(tmp_path, seed, fov, snr, bias):
@@ -120,7 +102,7 @@ def test_validation_family_fat_suppressed_subject(tmp_path, seed, fov, snr, bias
     # voxels over the skin rose above the noise floor: seed 0's contrast read fat bright
     # (ratio 4.2) and its muscle was lost (Dice 0.006); seed 1's darkest-tissue level fell
     # from the fat's 0.34 to 0.03, and the muscle took the breasts (Dice 0.43 / 0.85).
-    spec, img, truth = _family_supine(seed, tmp_path, snr=snr, bias=bias)
+    spec, img, truth = render_family_supine(seed, tmp_path, snr=snr, bias=bias)
     assert spec.fat_suppressed and spec.fov == fov
     res = segment_volume(img, name=f"seed{seed}/supine.nii.gz")
     assert res.contrast == "fat_suppressed"
@@ -139,7 +121,7 @@ def test_a_contrast_read_wrong_is_flagged(tmp_path, monkeypatch):
     from breastmodel.errors import StageError
     from breastmodel.pipeline.segment import segment_subject
 
-    _, img, _ = _family_supine(0, tmp_path, snr=300.0, bias=0.0)
+    _, img, _ = render_family_supine(0, tmp_path, snr=300.0, bias=0.0)
     monkeypatch.setattr(contrast, "SURFACE_LEVEL", 0.0)
     res = segment_volume(img, name="seed0/supine.nii.gz")
     assert res.contrast == "fat_bright"

@@ -14,6 +14,7 @@ Before this change the contrast was misread on 16 of the suite's 33 scans (seeds
 import numpy as np
 import pytest
 import SimpleITK as sitk
+from mri_synth import render_family_supine
 
 from imaging.io import read_volume
 from imaging.labels import BREAST, MUSCLE
@@ -24,23 +25,9 @@ from imaging.segment_regions import _interior_median, _muscle_start
 from imaging.segment_wall import _half_thickness, glands_off_muscle, skin_rim_off_muscle
 
 
-def render_supine(seed: int, root):
-    from breastmodel.phantom import make_phantom
-    from breastmodel.phantom.family import draw_spec
-
-    spec = draw_spec(seed, size="small")
-    out = root / "subject"
-    make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
-                 snr=spec.snr, bias=spec.bias, positions=("supine",), contrast=spec.contrast,
-                 fat_suppressed=spec.fat_suppressed, max_rotation_deg=spec.max_rotation_deg,
-                 max_translation_mm=spec.max_translation_mm, progress=False)
-    return (spec, read_volume(out / "supine.nii.gz"),
-            read_volume(root / "subject_truth" / "supine_labels.nii.gz"))
-
-
 @pytest.mark.parametrize("seed", range(12))
 def test_contrast_is_read_right_on_every_suite_spec(seed, tmp_path):
-    spec, img, _ = render_supine(seed, tmp_path)
+    spec, img, _ = render_family_supine(seed, tmp_path)
     res = segment_volume(img, name=f"seed{seed}/supine.nii.gz")
     want = "fat_suppressed" if spec.fat_suppressed else "fat_bright"
     assert res.contrast == want, res.notes
@@ -60,7 +47,7 @@ def test_contrast_is_read_right_on_every_suite_spec(seed, tmp_path):
 # before: 0.61-0.83 / 0.86-0.90 on the FEBio suite's three scans).
 @pytest.mark.parametrize("seed", [10, 4, 6, 9, 1])
 def test_a_gland_on_the_chest_wall_is_breast_not_muscle(seed, tmp_path):
-    _, img, truth = render_supine(seed, tmp_path)
+    _, img, truth = render_family_supine(seed, tmp_path)
     res = segment_volume(img, gland=True, name=f"seed{seed}/supine.nii.gz")
     d = dice(res.labels, truth)
     assert d["breast"] >= 0.95 and d["muscle"] >= 0.90, d  # issue 14's targets
@@ -75,7 +62,7 @@ def test_a_t2_fat_bright_slab_keeps_its_wall_and_both_breasts(tmp_path):
     # 0.551 / 0.003 before (the glands joined the wall's start, its level rose to theirs, the
     # wall went to the air, and the left breast, cut off by the marker search's opening, lost
     # every bright blob as a "marker"); 0.983 / 0.905 / gland 0.963 after
-    _, img, truth = render_supine(5, tmp_path)
+    _, img, truth = render_family_supine(5, tmp_path)
     res = segment_volume(img, gland=True, name="seed5/supine.nii.gz")
     d = dice(res.labels, truth)
     assert d["breast"] >= 0.95 and d["muscle"] >= 0.90 and d["gland"] >= 0.80, d
@@ -108,7 +95,7 @@ def test_glands_off_muscle_keeps_the_wall_and_its_thick_stretches():
 # seed 3 (torso T2 fat suppressed) 0.784 / 0.924.
 @pytest.mark.parametrize("seed", [7, 3])
 def test_gland_meets_its_target_on_t2_torso_subjects(seed, tmp_path):
-    _, img, truth = render_supine(seed, tmp_path)
+    _, img, truth = render_family_supine(seed, tmp_path)
     res = segment_volume(img, gland=True, name=f"seed{seed}/supine.nii.gz")
     d = dice(res.labels, truth)
     assert d["gland"] >= 0.80, d
@@ -186,7 +173,7 @@ def test_a_gland_reaching_the_skin_comes_off_whole():
 # missed there: the body's surface at 2 mm voxels takes about 800 air voxels and the breast
 # and muscle trade about 400 voxels each way; the bound below is what is met, not the target.
 def test_the_noisy_coarse_coil_scan_finds_its_thin_muscle(tmp_path):
-    spec, img, truth = render_supine(2, tmp_path)
+    spec, img, truth = render_family_supine(2, tmp_path)
     assert spec.voxel_size == (2.0, 2.0, 2.0) and spec.snr < 15
     res = segment_volume(img, gland=True, name="seed2/supine.nii.gz")
     d = dice(res.labels, truth)
@@ -258,7 +245,7 @@ def test_a_sheets_half_thickness_is_read_to_the_voxel(n):
 def test_the_muscles_back_lies_at_the_midpoint_with_the_thorax_interior(seed, tmp_path):
     from scipy import ndimage
 
-    _, img, truth = render_supine(seed, tmp_path)
+    _, img, truth = render_family_supine(seed, tmp_path)
     res = segment_volume(img, gland=True, name=f"seed{seed}/supine.nii.gz")
     own, t = sitk.GetArrayFromImage(res.labels), sitk.GetArrayFromImage(truth)
     lab, _ = ndimage.label(t == 0)
@@ -329,7 +316,7 @@ def test_the_breasts_skin_rim_is_not_muscle_on_fat_suppressed_slabs(seed, tmp_pa
     import imaging.segment as seg
     from breastmodel.phantom.anatomy import SKIN
 
-    _, img, truth = render_supine(seed, tmp_path)
+    _, img, truth = render_family_supine(seed, tmp_path)
     t = sitk.GetArrayFromImage(truth)
     tissue = sitk.GetArrayFromImage(read_volume(tmp_path / "subject_truth"
                                                 / "supine_tissue.nii.gz"))
