@@ -344,12 +344,13 @@ def _tissue_surfaces(masks: TissueMasks, *, edge_mm, size_mm, keep_gland, say):
     patch on the muscle (away from the skin), and the gland's surface when it is kept, with
     unused vertices dropped. Surfaces have edges of ``edge_mm``, at least 0.75 voxel.
     Returns ((vu, fu) union, (vb, fb) breast, gland surface or None, (vertices, faces) of
-    the input); ``say`` logs the surfaces' sizes."""
+    the input); ``say(message, *args)`` logs the surfaces' sizes, its caller appending the
+    time as the message's last argument."""
     grid = masks.grid
     edge_mm = max(edge_mm, 0.75 * float(grid.spacing.min()))
     vu, fu = tissue_surface(masks.union, grid, target_edge_mm=edge_mm, what="breast and muscle")
     vb, fb = tissue_surface(masks.breast, grid, target_edge_mm=edge_mm, what="breast")
-    say("meshing: surfaces %d + %d triangles", len(fu), len(fb))
+    say("meshing: surfaces %d + %d triangles (%.1f s)", len(fu), len(fb))
     voxel = float(masks.grid.spacing.max())
     gap = max(1.5 * voxel, 0.2 * size_mm)
     fi = _interface_patch(vb, fb, vu, fu, masks, gap_mm=gap)
