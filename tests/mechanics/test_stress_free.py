@@ -84,6 +84,33 @@ def test_inverse_gives_up_after_repeated_failed_forward_solves(truth, monkeypatc
     assert len(calls) == 1 + 4
 
 
+def test_inverse_gives_up_after_two_solves_without_equilibrium(truth, monkeypatch):
+    """Damped retries that fail with the solver's physical verdict (the body gives way) end
+    the inverse at the second verdict, though ``max_failures`` would allow more; a mere
+    numerical failure keeps the damped retries."""
+    import mechanics.stress_free as sf
+    from mechanics.solver import NoEquilibrium, SolverError
+
+    mesh, x_loaded = truth
+    model = _loaded(mesh.with_nodes(x_loaded))
+    real = sf._forward
+    for error, solves in ((NoEquilibrium("mechanics: no equilibrium (test)",
+                                         verdict={"kind": "no equilibrium"}), 1 + 2),
+                          (SolverError("mechanics: Newton diverged (test)"), 1 + 4)):
+        calls = []
+
+        def forward(*args, error=error, calls=calls):
+            calls.append(1)
+            if len(calls) > 1:
+                raise error
+            return real(*args)
+
+        monkeypatch.setattr(sf, "_forward", forward)
+        with pytest.raises(SolverError, match="test"):
+            inverse_fixed_point(model, x_loaded, tol=1e-9, max_iter=50, max_failures=3)
+        assert len(calls) == solves
+
+
 def test_a_fixed_point_step_that_inverts_an_element_is_halved_until_none_does():
     """The inverse's next estimate never folds the mesh: a plain step that would push a tet's
     apex through its base (from z = 1 to -1) is halved until the tet keeps its orientation,
