@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from breastmodel.pipeline.fit_evaluations import Evaluator as _Evaluator
-from breastmodel.pipeline.fit_jacobian import PENALTY_MM, Jacobian
+from breastmodel.pipeline.fit_jacobian import PENALTY_MM, Jacobian, line_start
 from breastmodel.pipeline.fit_statistics import (
     identifiability,
     lsq_uncertainty,
@@ -235,15 +235,25 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
     jac = Jacobian(fun, shift, lo, hi, w0)
     stop, uncertainty, offset, optimum = "budget spent", {}, {}, None
     try:
-        sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo - shift, hi - shift), method="trf",
-                        x_scale=1.0, xtol=1e-4, ftol=1e-4, max_nfev=budget,
-                        callback=jac.settled)
-        stop = jac.stop or str(sol.message)
-        p_opt = np.exp(sol.x + shift)
+        w0, steps = line_start(fun, jac, w0, lo - shift, hi - shift)
+        jac.x = w0
+        if steps and len(names) == 1:  # the line search minimised along the only direction
+            w, J, r = w0, jac(w0), fun(w0)
+            stop = (f"the line search {steps:.3g} times the first Gauss-Newton step away "
+                    "found the least squares' minimum (one parameter)")
+        else:
+            if steps:
+                log.info("fit: the least squares start %.3g times their first Gauss-Newton "
+                         "step away, where the sum of squares stopped falling", steps)
+            sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo - shift, hi - shift), method="trf",
+                            x_scale=1.0, xtol=1e-4, ftol=1e-4, max_nfev=budget,
+                            callback=jac.settled)
+            w, J, r, stop = sol.x, sol.jac, sol.fun, jac.stop or str(sol.message)
+        p_opt = np.exp(w + shift)
         optimum = dict(zip(names, p_opt.tolist()))
-        uncertainty = lsq_uncertainty(sol.jac, sol.fun, p_opt, names)
-        ident = identifiability(sol.jac, names)
-        offset = _offset_sensitivity(ev, sol.jac, p_opt, names, calibrate)
+        uncertainty = lsq_uncertainty(J, r, p_opt, names)
+        ident = identifiability(J, names)
+        offset = _offset_sensitivity(ev, J, p_opt, names, calibrate)
     except _BudgetSpent:
         ident = None
     except _StartFailed as exc:  # _summary below names the error (every evaluation failed)
