@@ -3,11 +3,14 @@
     python bench/validate.py                       # 12 small subjects, seeds 0-11
     python bench/validate.py --size full --subjects 12 --work /data/validation
     python bench/validate.py --seeds 3,7 --force   # redo two subjects
+    python bench/validate.py --band soft --seeds 0,3,8 --json bench/results/validate_soft.json
 
 Each subject is drawn from the phantom family (``breastmodel.phantom.family``: field of view,
 anatomy, voxels, contrast, motion, tilt, all from the seed), its truth deformation computed by
 FEBio 4 (``--febio`` or ``$FEBIO``, else ``../shared/febio/febio4``) on a finer mesh than the
 fitted one, then run twice through ``breastmodel run`` (own segmentation; truth labels).
+``--band soft`` draws the same subjects with the soft band's breast moduli
+(``breastmodel.phantom.family.MODULUS_BANDS``: twice the sag), named ``small-soft-<seed>``.
 Prints a table and writes ``--json`` (default ``bench/results/validate.json``) plus one
 result per subject under ``--work``/results (a rerun resumes: finished subjects are read
 back; truths and pipeline stages are cached too).
@@ -37,6 +40,8 @@ def main(argv=None) -> int:
     ap.add_argument("--subjects", type=int, default=12, help="seeds 0..N-1 (default 12)")
     ap.add_argument("--seeds", default=None, help="comma-separated seeds (overrides --subjects)")
     ap.add_argument("--size", choices=("small", "full"), default="small")
+    ap.add_argument("--band", choices=("standard", "soft"), default="standard",
+                    help="the breast modulus' band of the family (default standard)")
     ap.add_argument("--work", type=Path, default=ROOT / "bench" / "validation_work")
     ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "validate.json")
     ap.add_argument("--febio", default=None, help="FEBio 4 executable (default $FEBIO, then "
@@ -66,8 +71,10 @@ def main(argv=None) -> int:
         return 2
     seeds = ([int(s) for s in args.seeds.split(",")] if args.seeds
              else list(range(args.subjects)))
-    names = [f"{args.size}-{s:03d}" for s in seeds]
-    make = family_maker(size=args.size, febio=febio, cache=args.work / "truth_cache")
+    tag = "" if args.band == "standard" else f"{args.band}-"
+    names = [f"{args.size}-{tag}{s:03d}" for s in seeds]
+    make = family_maker(size=args.size, febio=febio, cache=args.work / "truth_cache",
+                        band=args.band)
     t0 = time.perf_counter()
 
     def show(res):
@@ -90,7 +97,8 @@ def main(argv=None) -> int:
     from breastmodel.config import write_json
 
     args.json.parent.mkdir(parents=True, exist_ok=True)
-    write_json(args.json, {"size": args.size, "seeds": seeds, "wall_s": time.perf_counter() - t0,
+    write_json(args.json, {"size": args.size, "band": args.band, "seeds": seeds,
+                           "wall_s": time.perf_counter() - t0,
                            "targets": summary, "subjects": results})
     print(f"\nwrote {args.json}")
     return 0

@@ -45,6 +45,8 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     f.add_argument("--physics", default=None, metavar="NAME[+NAME]",
                    help="truth physics of a family subject (bulk, or bulk with one hidden "
                         "effect: asymmetric, gland, gent_breast, skin, fascia, ligaments)")
+    f.add_argument("--band", choices=("standard", "soft"), default="standard",
+                   help="the breast modulus' band of a family subject (soft: twice the sag)")
     return p
 
 
@@ -111,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             over = {"physics": args.physics} if args.physics else {}
             if args.truth_mesh_size:
                 over["truth_mesh_size_mm"] = args.truth_mesh_size
-            spec = draw_spec(args.seed, size=args.family, **over)
+            spec = draw_spec(args.seed, size=args.family, band=args.band, **over)
         out = make_subject(spec, args.out, truth_solver=args.truth_solver or "febio",
                            febio=args.febio, cache_dir=args.truth_cache, progress=True)
         print(f"wrote {out} ({spec.name}: {json.dumps(spec.to_dict(), sort_keys=True)}) in "

@@ -19,6 +19,7 @@ scans (1 mm, 0.5 x 0.5 x 0.6 mm, 0.7 x 0.7 x 1.5 mm).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import fields
 from pathlib import Path
@@ -40,7 +41,8 @@ from breastmodel.phantom.truth_model import NU, TruthModel
 from mechanics.mesh import BREAST_SIDE
 
 __all__ = [
-    "SubjectSpec", "draw_spec", "make_subject", "truth_model", "CUPS", "FOV_KINDS", "PHYSICS",
+    "SubjectSpec", "draw_spec", "make_subject", "truth_model", "CUPS", "FOV_KINDS",
+    "MODULUS_BANDS", "PHYSICS",
     "SIZES", "VOXEL_SPACINGS",
 ]
 
@@ -48,6 +50,16 @@ log = logging.getLogger("breastmodel.phantom")
 
 #: Draw stream tag (keeps family draws independent of other uses of the same seed).
 _STREAM = 0xFA11
+#: Bands of the breast modulus an adult subject is drawn from, kPa (half-size subjects take
+#: half: sag scales as rho g L^2 / E, so the half-size anatomy strains as much as the adult).
+#: ``"standard"``, the suite's: adult breasts sag about 17-33 mm prone to supine (about 50 mm
+#: at 1 kPa, :data:`~breastmodel.phantom.truth_model.E_BREAST`), the half-size ones 8-17 mm,
+#: where the skin's fit hardly tells 10 % of the modulus from a voxel of segmentation (the
+#: README's "Is the truth converged?"). ``"soft"``: the lower half of the moduli fitted to
+#: prone-supine MRI in vivo (0.2-6 kPa; Mira et al. 0.2-0.3 kPa with a 4 kPa skin), twice
+#: the sag: a half-size torso (seed 3) at 0.5 kPa sags 23 / 33 / 42 mm at most in prone /
+#: supine / tilted (FEBio). The same draw maps into either band, so a seed keeps its place.
+MODULUS_BANDS = {"standard": (1.5, 3.0), "soft": (0.7, 1.4)}
 
 
 def truth_model(spec: SubjectSpec) -> TruthModel:
@@ -68,11 +80,17 @@ def truth_model(spec: SubjectSpec) -> TruthModel:
             m.update(o)
             mats[code] = m
         effects.update({k: dict(v) for k, v in eff.items()})
+    from breastmodel.phantom.truth_solvers import FEBIO_SOFT_BELOW_KPA, FEBIO_STEPS
+
+    adult_E = spec.breast_E_kpa / _SCALE[spec.size]
+    steps = (FEBIO_STEPS * math.ceil(FEBIO_SOFT_BELOW_KPA / adult_E)
+             if adult_E < FEBIO_SOFT_BELOW_KPA else None)
     return TruthModel(materials=mats, effects=effects, mesh_size_mm=spec.truth_mesh_size_mm,
-                      name=spec.physics)
+                      name=spec.physics, load_steps=steps)
 
 
-def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpec:
+def draw_spec(seed: int, *, size: str = "small", band: str = "standard",
+              **overrides: Any) -> SubjectSpec:
     """Draw a varied subject from a seed.
 
     Every field is drawn in a fixed order from one stream of ``seed`` and ``size``, then
@@ -85,6 +103,8 @@ def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpe
         Non-negative integer.
     size
         ``"small"`` or ``"full"``.
+    band
+        The breast modulus' band, a key of :data:`MODULUS_BANDS`.
     **overrides
         Fields of :class:`SubjectSpec` to set instead of drawing them.
 
@@ -106,6 +126,8 @@ def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpe
         raise ValueError(f"phantom: size must be one of {SIZES}, got {size!r}")
     if int(seed) != seed or seed < 0:
         raise ValueError(f"phantom: seed must be a non-negative integer, got {seed!r}")
+    if band not in MODULUS_BANDS:
+        raise ValueError(f"phantom: band must be one of {sorted(MODULUS_BANDS)}, got {band!r}")
     known = {f.name for f in fields(SubjectSpec)} - {"seed", "size"}
     extra = set(overrides) - known
     if extra:
@@ -119,6 +141,7 @@ def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpe
         return round(float(rng.uniform(lo, hi)), nd)
 
     spacings = VOXEL_SPACINGS[size]
+    e_lo, e_hi = MODULUS_BANDS[band]
     drawn = dict(
         fov=str(FOV_KINDS[rng.integers(len(FOV_KINDS))]),
         cup=str(sorted(CUPS)[rng.integers(len(CUPS))]),
@@ -135,7 +158,7 @@ def draw_spec(seed: int, *, size: str = "small", **overrides: Any) -> SubjectSpe
         max_rotation_deg=u(0.0, 15.0 if full else 8.0, 2),
         max_translation_mm=u(0.0, 30.0 if full else 12.0, 2),
         positions=("prone", "supine", f"supine_tilted_{int(rng.integers(0, 61))}"),
-        breast_E_kpa=round(s * float(rng.uniform(1.5, 3.0)), 2),
+        breast_E_kpa=round(s * (e_lo + (e_hi - e_lo) * float(rng.random())), 2),
     )
     drawn.update(overrides)
     return SubjectSpec(seed=int(seed), size=size, **drawn)

@@ -52,12 +52,16 @@ class TruthModel:
         Target tet edge of the truth mesh, mm (finer than a fitted model's 8-10 mm).
     name : str
         Label recorded in the truth folder (preset name).
+    load_steps : int or None
+        Load steps the truth solver starts from (None: its own default; soft tissue that
+        sags far needs smaller first steps).
     """
 
     materials: MappingProxyType = field(default_factory=lambda: _frozen({}))
     effects: MappingProxyType = field(default_factory=lambda: _frozen({}))
     mesh_size_mm: float = 6.0
     name: str = "custom"
+    load_steps: int | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "materials", _frozen(
@@ -66,6 +70,9 @@ class TruthModel:
             {str(k): dict(v or {}) for k, v in dict(self.effects).items()}))
         if not self.mesh_size_mm > 0:
             raise ValueError(f"truth model: mesh_size_mm must be > 0, got {self.mesh_size_mm}")
+        if self.load_steps is not None and not (int(self.load_steps) == self.load_steps >= 1):
+            raise ValueError(f"truth model: load_steps must be a positive integer, got "
+                             f"{self.load_steps!r}")
         from mechanics.effects import exclusions
         from mechanics.effects.gravity import Gravity
 
@@ -111,13 +118,14 @@ class TruthModel:
             "mesh_size_mm": self.mesh_size_mm,
             "materials": {str(k): dict(v) for k, v in self.materials.items()},
             "effects": _thaw(self.effects),
+            **({} if self.load_steps is None else {"load_steps": int(self.load_steps)}),
         }
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> TruthModel:
         return cls(materials={int(k): v for k, v in d["materials"].items()},
                    effects=d["effects"], mesh_size_mm=float(d["mesh_size_mm"]),
-                   name=str(d.get("name", "custom")))
+                   name=str(d.get("name", "custom")), load_steps=d.get("load_steps"))
 
     def run_model(self, *, drop: tuple[str, ...] = ()) -> dict:
         """The truth as a run config's ``[model]`` table (materials by region name), without

@@ -16,7 +16,8 @@ import numpy as np
 
 from breastmodel.phantom.truth_model import TruthModel
 
-__all__ = ["FEBIO_APPROXIMATED", "FEBIO_ELEMENT", "FEBIO_MAX_REFS", "FEBIO_STEPS", "TRUTH_SOLVERS",
+__all__ = ["FEBIO_APPROXIMATED", "FEBIO_ELEMENT", "FEBIO_MAX_REFS", "FEBIO_SOFT_BELOW_KPA",
+           "FEBIO_STEPS", "TRUTH_SOLVERS",
            "find_febio_for_truth", "solve_position", "truth_solver_executable"]
 
 log = logging.getLogger("breastmodel.phantom")
@@ -27,6 +28,12 @@ TRUTH_SOLVERS = ("ours", "febio")
 #: two steps reach the same equilibrium as ten (to 1e-13 mm on a small subject) at a fifth of
 #: the time, and FEBio's time stepper halves a step that fails to converge.
 FEBIO_STEPS = 2
+#: A family subject whose breast is softer than the standard band (adult 1.5 kPa) starts from
+#: ``FEBIO_STEPS * ceil(1.5 kPa / its adult-size modulus)`` steps (``load_steps`` of its
+#: truth model): a half-size torso (seed 3) at 0.3 kPa in 2 steps had FEBio retry its
+#: supine position through negative Jacobians for over 10 minutes (the first step from rest
+#: cut 6 times); at 0.5 kPa in 4 steps the three positions took 105, 184 and 236 s.
+FEBIO_SOFT_BELOW_KPA = 1.5
 #: Newton iterations FEBio may spend on one time step of a truth before it cuts the step
 #: (its own default and :data:`mechanics.febio.TOLERANCES`: 25). On Gent breast tissue
 #: FEBio's Newton converges linearly near full load (the displacement norm halves each
@@ -119,7 +126,8 @@ def _solve_febio(model, name: str, tm, febio_path, *, cache_dir, work_dir):
         wd = Path(work_dir) / name if work_dir is not None else Path(tmp)
         try:
             run = solve_with_febio(model, work_dir=wd, febio=febio_path, element=FEBIO_ELEMENT,
-                                   threads=1, cache_dir=febio_cache, steps=FEBIO_STEPS,
+                                   threads=1, cache_dir=febio_cache,
+                                   steps=tm.load_steps or FEBIO_STEPS,
                                    approximate=approximate, max_refs=FEBIO_MAX_REFS)
         except Exception as exc:  # noqa: BLE001 - re-raised naming the position and model
             raise RuntimeError(f"phantom: FEBio truth of position {name!r} with truth model "

@@ -61,6 +61,29 @@ def test_overrides_change_only_what_they_name():
         draw_spec(5, fov="helmet")
 
 
+def test_the_soft_band_draws_the_same_subjects_with_the_soft_moduli():
+    """``band="soft"`` maps the seed's draw into the soft band (half for half-size
+    subjects): every other field is the same subject's, the modulus lies in the band and keeps
+    its place in it, and a truth that soft starts FEBio from more load steps."""
+    from breastmodel.phantom.family import MODULUS_BANDS
+    from breastmodel.phantom.truth_solvers import FEBIO_STEPS
+
+    for seed, size, scale in ((0, "small", 0.5), (3, "small", 0.5), (1, "full", 1.0)):
+        std, soft = draw_spec(seed, size=size), draw_spec(seed, size=size, band="soft")
+        assert replace(soft, breast_E_kpa=std.breast_E_kpa) == std
+        (lo, hi), (slo, shi) = MODULUS_BANDS["standard"], MODULUS_BANDS["soft"]
+        assert scale * slo <= soft.breast_E_kpa <= scale * shi
+        at = (std.breast_E_kpa / scale - lo) / (hi - lo)
+        assert soft.breast_E_kpa == pytest.approx(scale * (slo + at * (shi - slo)), abs=0.011)
+        assert std.truth_model().load_steps is None  # FEBio's FEBIO_STEPS, as before
+        assert soft.truth_model().load_steps == 2 * FEBIO_STEPS
+        assert soft.truth_model().to_dict()["load_steps"] == 2 * FEBIO_STEPS
+        assert type(soft.truth_model()).from_dict(soft.truth_model().to_dict()) \
+            == soft.truth_model()
+    with pytest.raises(ValueError, match="band must be one of"):
+        draw_spec(0, band="jelly")
+
+
 def test_spec_round_trips_through_json():
     for seed, size in ((0, "small"), (1, "full"), (2, "small")):
         sp = draw_spec(seed, size=size)
