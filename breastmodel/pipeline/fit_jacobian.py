@@ -106,7 +106,7 @@ def line_start(fun, jac: Jacobian, w0: np.ndarray, lo: np.ndarray, hi: np.ndarra
     it lies from ``w0``: 0 for ``w0`` itself). Where the Gauss-Newton step is about right this
     costs two evaluations more than trf alone (twice the step, and the vertex): trf's own
     first step is not d (its scaling near the bounds), and on a suite subject it stopped at
-    0.644 kPa where d had found 0.597 kPa, 7 % lower in S.
+    0.644 kPa where d had found 0.597 kPa, 6 % lower in S.
 
     On the soft coil subject of :data:`LINE_DOUBLINGS` trials of 1.3 % steps were as bumpy
     as the fall (S 7422, 7339, 7335, 7158 mm^2 at 1, 0.987, 0.974, 0.949 kPa); from 5 % the
