@@ -79,12 +79,10 @@ def inverse_fixed_point(
         otherwise spend ``max_iter`` full cut-back cascades
     max_total_failures : failed forward solves allowed in all (a model that fails, damps,
         recovers and fails again does not converge either)
-    max_no_equilibrium : forward solves that end in the solver's physical verdict
-        (:class:`~mechanics.solver.NoEquilibrium`: the body gives way) allowed in all. Each
-        such verdict costs every cut-back of a solve, and damping the estimate seldom gives
-        the model an equilibrium back: on a soft suite subject (0.18 kPa, supine, coil) the
-        inverse spent 6 minutes on 7 of them, the breast giving way at loads 0.25-0.72 each
-        time
+    max_no_equilibrium : forward solves ending in the solver's physical verdict (the body
+        gives way, :class:`~mechanics.solver.NoEquilibrium`) allowed in all: each costs
+        every cut-back, and damping seldom gives the equilibrium back (a soft suite subject
+        at 0.18 kPa, supine: 7 of them in 6 minutes, the breast giving way at 0.25-0.72)
     X0, u0 : (N, 3) initial estimate of X and of the displacement, mm (default: ``x_target``
         and none; a nearby model's solution makes a warm start)
     callback : called with each iteration's history row (progress reporting)

@@ -146,8 +146,7 @@ def register_rigid(
                          shrink=shrink, smooth_mm=smooth_mm, opts=opts)
     k = max(1, int(fine_levels))  # the start is close (fiducials, or moments + whole body)
     levels = dict(_fine(fixed, shrink[-k:], smooth_mm[-k:]), **opts)
-    init, tfm, metric = _best_refined(fixed, moving, starts, notes, fixed_mask=fixed_mask,
-                                      levels=levels)
+    init, tfm, metric = _best_refined(fixed, moving, starts, notes, fixed_mask, levels)
     for n in notes:
         log.warning("%s: %s", STAGE, n)
     if fixed_mask is not None:
@@ -332,7 +331,7 @@ def _start(fixed, moving, fid, initial, notes, *, fixed_mask, shrink, smooth_mm,
                        ("the scanner's frame", still)]
 
 
-def _best_refined(fixed, moving, starts, notes, *, fixed_mask, levels):
+def _best_refined(fixed, moving, starts, notes, fixed_mask, levels):
     """(start, refined transform, correlation) of the candidate start whose chest-wall
     refinement correlates best (a note names it where there were several). Breasts that
     deform draw the whole body's centroid and correlation: on a soft suite subject (torso,

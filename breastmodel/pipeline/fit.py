@@ -200,8 +200,6 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
     step below the parameters' uncertainty, or below 1 %); evaluations are stored in
     ``work_dir/least_squares`` and replayed on resume; ``warm`` as for :func:`optimise`.
     """
-    from scipy.optimize import least_squares as scipy_lsq
-
     names = list(parameters)
     lo = np.log([_bounds(parameters[n])[0] for n in names])
     hi = np.log([_bounds(parameters[n])[1] for n in names])
@@ -235,20 +233,7 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
     jac = Jacobian(fun, shift, lo, hi, w0)
     stop, uncertainty, offset, optimum = "budget spent", {}, {}, None
     try:
-        w0, steps = line_start(fun, jac, w0, lo - shift, hi - shift)
-        jac.x = w0
-        if steps and len(names) == 1:  # the line search minimised along the only direction
-            w, J, r = w0, jac(w0), fun(w0)
-            stop = (f"the line search {steps:.3g} times the first Gauss-Newton step away "
-                    "found the least squares' minimum (one parameter)")
-        else:
-            if steps:
-                log.info("fit: the least squares start %.3g times their first Gauss-Newton "
-                         "step away, where the sum of squares stopped falling", steps)
-            sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo - shift, hi - shift), method="trf",
-                            x_scale=1.0, xtol=1e-4, ftol=1e-4, max_nfev=budget,
-                            callback=jac.settled)
-            w, J, r, stop = sol.x, sol.jac, sol.fun, jac.stop or str(sol.message)
+        w, J, r, stop = _solve(fun, jac, w0, lo - shift, hi - shift, budget)
         p_opt = np.exp(w + shift)
         optimum = dict(zip(names, p_opt.tolist()))
         uncertainty = lsq_uncertainty(J, r, p_opt, names)
@@ -262,6 +247,26 @@ def least_squares(problem_dir: Path, settings: Mapping[str, Any],
                     warm)
     return {**res, "termination": stop, "uncertainty": uncertainty, "identifiability": ident,
             "optimum": optimum, "skin_offset_sensitivity": offset}
+
+
+def _solve(fun, jac: Jacobian, w0: np.ndarray, lo: np.ndarray, hi: np.ndarray, budget: int):
+    """(w, J, r, termination) of the least squares in w (bounds ``lo``, ``hi``): the search
+    along the first Gauss-Newton direction (:func:`~breastmodel.pipeline.fit_jacobian
+    .line_start`), which is the whole fit for one parameter, then scipy's trust region."""
+    from scipy.optimize import least_squares as scipy_lsq
+
+    w0, steps = line_start(fun, jac, w0, lo, hi)
+    jac.x = w0
+    if steps and len(w0) == 1:  # the line search minimised along the only direction
+        return w0, jac(w0), fun(w0), (f"the line search {steps:.3g} times the first "
+                                      "Gauss-Newton step away found the least squares' "
+                                      "minimum (one parameter)")
+    if steps:
+        log.info("fit: the least squares start %.3g times their first Gauss-Newton step "
+                 "away, where the sum of squares stopped falling", steps)
+    sol = scipy_lsq(fun, w0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0, xtol=1e-4,
+                    ftol=1e-4, max_nfev=budget, callback=jac.settled)
+    return sol.x, sol.jac, sol.fun, jac.stop or str(sol.message)
 
 
 def _offset_sensitivity(ev, J, p_opt, names, calibrate) -> dict:
