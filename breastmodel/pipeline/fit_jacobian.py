@@ -118,11 +118,12 @@ def line_start(fun, jac: Jacobian, w0: np.ndarray, lo: np.ndarray, hi: np.ndarra
     Gauss-Newton steps it lies from ``w0``: 0 for ``w0`` itself).
 
     On the soft band's coil subject small-soft-000 (truth labels) the trust region's 1.3 %
-    steps were as bumpy as the fall (S 7422, 7339, 7335, 7158 mm^2 at 1, 0.987, 0.974, 0.949 kPa); from 5 % the
-    trials went 1 -> 0.449 kPa in 4 doublings (S 3835), the parabola of the last three put
-    the vertex at 0.429 kPa (S 3853): the fit's minimum 0.449, its best by MHD 0.472 kPa
-    (truth 0.44). The doubling after 0.449, 0.18 kPa, has no equilibrium and cost two
-    failed forward solves of about 100 s each in a first version that did not stop there."""
+    steps were as bumpy as the fall (S 7422, 7339, 7335, 7158 mm^2 at 1, 0.987, 0.974, 0.949
+    kPa); from 5 % the trials went 1 -> 0.449 kPa in 4 doublings (S 3835), the parabola of
+    the last three put the vertex at 0.429 kPa (S 3853): the fit's minimum 0.449, its best
+    by MHD 0.472 kPa (truth 0.44). The doubling after 0.449, 0.18 kPa, has no equilibrium
+    and cost two failed forward solves of about 100 s each in a first version that did not
+    stop there."""
     w0 = np.asarray(w0, float)
     r0 = fun(w0)
     J = jac(w0)
