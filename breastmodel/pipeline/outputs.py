@@ -354,7 +354,8 @@ def write_outputs(out: Path, problem_dir: Path, sf_dir: Path, pred_dirs: Mapping
                       reference=problem.reference, out=out)
     meta = json.loads((Path(problem_dir) / "problem.json").read_text())
     metrics["mesh"] = {k: meta[k] for k in ("n_nodes", "n_tets", "mesh_size_mm", "mesh_size",
-                                            "repairs", "skin_repairs") if k in meta}
+                                            "repairs", "skin_repairs", "field_of_view")
+                       if k in meta}
     if refinement is not None:
         metrics["refinement"] = dict(refinement)
     metrics["files"] = {"paraview": "run.vtm", "positions": blocks, "febio": febio,

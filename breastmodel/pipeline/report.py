@@ -160,6 +160,12 @@ def _repair_rows(mesh: Mapping[str, Any]) -> list[list]:
     for pos, rep in (mesh.get("skin_repairs") or {}).items():
         rows.append([f"measured skin {pos}", "label map surface",
                      f"{len(rep)} repair(s) of the label map", "; ".join(rep) or "-"])
+    fov = mesh.get("field_of_view")
+    if fov:
+        rows.append(["field of view", "the reference's breasts on its cut planes",
+                     ", ".join(f"{side} {100 * c['share']:.0f} % of the skin area"
+                               for side, c in fov["cut"].items()) or "-",
+                     fov.get("warning") or "-"])
     return rows
 
 

@@ -10,6 +10,7 @@ reference is segmented and segments and registers the other positions beside it.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -19,6 +20,8 @@ import numpy as np
 
 from breastmodel.errors import StageError
 from imaging.labels import BREAST, BREAST_TISSUE, MUSCLE
+
+log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["mesh_options", "mesh_stage", "problem_stage", "register_stage", "segment_stage",
            "skins_stage"]
@@ -148,7 +151,9 @@ def skins_stage(subject, reg_dir: Path, cfg: Mapping[str, Any]) -> Callable[[Pat
 def problem_stage(subject, reg_dir: Path, mesh_dir: Path,
                   skins_dir: Path) -> Callable[[Path], None]:
     """The problem folder: the mesh and measured skins copied from their stages, and
-    ``problem.json`` (reference, gravity, landmarks in the reference frame, mesh size)."""
+    ``problem.json`` (reference, gravity, landmarks in the reference frame, mesh size, where
+    the reference's field of view cut the breasts: :mod:`meshing.field_of_view`, logged as a
+    warning past its share)."""
 
     def fn(d: Path) -> None:
         from breastmodel.config import write_json
@@ -172,6 +177,24 @@ def problem_stage(subject, reg_dir: Path, mesh_dir: Path,
         skins = skins_dir / "skins.json"  # absent from a cache made before it was written
         write_json(d / "problem.json", {
             "reference": ref, "gravity": gravity, "landmarks": landmarks,
+            "field_of_view": _field_of_view(d / "mesh.npz", reg_dir / "reference_labels.nii.gz",
+                                            ref),
             "skin_repairs": json.loads(skins.read_text())["repairs"] if skins.is_file() else {},
             **json.loads((mesh_dir / "mesh.json").read_text())})
     return fn
+
+
+def _field_of_view(mesh_path: Path, labels_path: Path, reference: str) -> dict:
+    """``cut`` (:func:`meshing.field_of_view.breast_cut` of the mesh in the reference label
+    map's grid) and ``warning`` (None, or logged here)."""
+    import SimpleITK as sitk
+
+    from mechanics.mesh import Mesh
+    from meshing.field_of_view import breast_cut, cut_warning
+    from meshing.labels import Grid
+
+    cut = breast_cut(Mesh.load_npz(mesh_path), Grid.of(sitk.ReadImage(str(labels_path))))
+    warning = cut_warning(cut, reference)
+    if warning:
+        log.warning("%s", warning)
+    return {"cut": cut, "warning": warning}

@@ -80,8 +80,9 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
     ``stages`` (name, label, status, wall_s), ``dice`` {position: {tissue: Dice}},
     ``registration`` {position: TRE, rotation error, fiducial residual, warnings},
     ``fitted`` {breast_E kPa, n_simulations}, ``truth_E`` {side: kPa}, ``mhd_mm``
-    {position: MHD}, ``calibrate``, ``held_out``, ``figures`` (flat, see :data:`TARGETS`)
-    and ``wall_s``.
+    {position: MHD}, ``field_of_view`` (the reference's breasts on its cut planes,
+    :func:`meshing.field_of_view.breast_cut`, and the warning), ``calibrate``,
+    ``held_out``, ``figures`` (flat, see :data:`TARGETS`) and ``wall_s``.
     """
     from breastmodel.errors import StageError
     from breastmodel.pipeline.run import run_subject
@@ -122,6 +123,7 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
         result["p95_mm"] = {p: m.get("p95_mm") for p, m in metrics["positions"].items()}
         result["mhd_overlap_mm"] = {p: m.get("mhd_overlap_mm")
                                     for p, m in metrics["positions"].items()}
+        result["field_of_view"] = (metrics.get("mesh") or {}).get("field_of_view")
     result["wall_s"] = round(time.perf_counter() - t0, 2)
     result["figures"] = arm_figures(arm, result, calibrate, held_out)
     return result
