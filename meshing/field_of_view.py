@@ -1,13 +1,17 @@
 """Where the reference scan's field of view cut the model's breast: its boundary faces on the
 image's faces, which the body goes on past and the model does not.
 
-A soft breast that falls out of view in the reference (laterally, in supine) comes back into
-view in another position (prone), and the model, which lacks the tissue beyond and has a free
-face where the body had more of it, is off there. On small-soft-000 of the validation suite
-(the coil's field of view, x within +-60 mm; FEBio's supine truth put 5346 mm^3 of the right
-breast outside it) the fitted model's prone skin, against FEBio's, was off by 2.6 mm on
-average (9.1 mm at most) within 10 mm of the right cut and 0.2-0.8 mm in the middle
-(README, "The soft band").
+Near such a cut the model is less sure than elsewhere: its free face stands where the body had
+more tissue, and a soft breast that fell out of view in the reference (laterally, in supine)
+comes back into view in another position (prone) without the model having it. Measured on
+five subjects of the validation suite (truth labels; the fitted model's skin against FEBio's,
+so neither registration nor measured skin enters; ``bench/fov_cut.py``,
+``bench/results/fov_cut_2026-12-02.json``): within 15 mm of the cut faces the skin is off by
+0.46-0.73 mm on average in the reference position itself and 0.67-1.32 mm in prone, elsewhere
+0.15-0.54 mm; the coil's small-soft-000, whose supine truth put 5346 mm^3 of the right breast
+outside the field of view, the most (prone 1.32 mm, 9.1 mm at most). The cut share of
+:func:`breast_cut` says where this applies; what it costs depends on how much tissue crosses
+the cut, which the reference alone cannot show.
 """
 
 from __future__ import annotations
@@ -57,7 +61,9 @@ def cut_warning(cut: dict[str, dict[str, float]], reference: str) -> str | None:
     parts = [f"the {s} breast over {c['cut_mm2']:.0f} mm^2 ({100 * c['share']:.0f} % of its "
              "skin area)" for s, c in over.items()]
     return (f"field of view: the reference scan ({reference}) cuts " + " and ".join(parts)
-            + "; the model ends there while the body goes on, so near the cut its predictions "
-              "of the other positions can be off by millimetres (compare the MHD over the "
-              "skin both surfaces show, mhd_overlap_mm); a wider field of view in the "
-              "reference removes it")
+            + "; the model ends there while the body goes on, so within about 15 mm of the cut "
+              "its predicted skin is less sure than elsewhere (on the validation suite 0.5-1.3 "
+              "mm from the truth on average against 0.15-0.5 mm; more where a soft breast "
+              "falls out of view in the reference): judge the fit by the MHD over the skin "
+              "both surfaces show (mhd_overlap_mm), or scan the reference with a wider field "
+              "of view")

@@ -79,6 +79,14 @@ def test_run_writes_metrics_surfaces_params_report(first_run):
     # map, maybe empty) and listed in the report's run status
     assert isinstance(metrics["mesh"]["repairs"], list)
     assert set(metrics["mesh"]["skin_repairs"]) == set(POSITIONS)
+    # where the reference's field of view cut each breast, its warning, and the report's row
+    from meshing.field_of_view import CUT_SHARE
+
+    fov = metrics["mesh"]["field_of_view"]
+    assert set(fov["cut"]) == {"left", "right"}
+    assert all(0 <= c["share"] < 1 and c["skin_mm2"] > 0 for c in fov["cut"].values())
+    assert (fov["warning"] is None) == all(c["share"] <= CUT_SHARE for c in fov["cut"].values())
+    assert "field of view" in (out / "report.html").read_text()
     for pos, m in metrics["positions"].items():
         for key in ("mhd_mm", "hausdorff_mm", "rmse_mm", "p95_mm"):
             assert math.isfinite(m[key]) and m[key] >= 0, (pos, key)
