@@ -230,8 +230,16 @@ def test_tets_hanging_by_an_edge_or_a_vertex_are_not_the_main_body():
 
 def test_mesh_made_in_a_worker_process_equals_the_one_made_here(boxes, tmp_path, monkeypatch):
     """The pipeline meshes an adult reference in a ``python -m meshing.background`` worker
-    beside its other stages: the same mesh, bit for bit; a worker's error is raised when the
-    result is taken; leaving the context stops a worker still running."""
+    beside its other stages: the mesh of the same label map, at the size asked, with every
+    set; a worker's error is raised when the result is taken; leaving the context stops a
+    worker still running.
+
+    Not bit for bit: pymeshlab's isotropic remeshing gives another surface now and then on the
+    same input in a fresh process (measured on this label map's union: 4 of about 460 runs,
+    with one OpenMP thread and with address randomisation off too; README, "`breastmodel mesh` / `surface`"), and
+    that surface's tet mesh has 1211 nodes against 1131, its volume the same to 0.003 %, its
+    breast's and muscle's to 0.25 %, each side's to 1.3 %. The bounds below hold both and would catch a mesh of another map,
+    size or grading."""
     from pathlib import Path
 
     import SimpleITK as sitk
@@ -247,12 +255,20 @@ def test_mesh_made_in_a_worker_process_equals_the_one_made_here(boxes, tmp_path,
         assert job.proc is not None  # the worker, not this process
         mesh, size, why = job.result()
     assert (size, why) == (H, "given")
-    for key in ("nodes", "tets", "region"):
-        assert np.array_equal(getattr(mesh, key), getattr(here, key))
     for kind in ("node_sets", "face_sets", "node_pairs"):
-        got, want = getattr(mesh, kind), getattr(here, kind)
-        assert got.keys() == want.keys()
-        assert all(np.array_equal(got[k], want[k]) for k in want)
+        assert getattr(mesh, kind).keys() == getattr(here, kind).keys()
+    assert abs(mesh.n_nodes / here.n_nodes - 1) < 0.1
+    assert set(np.unique(mesh.region)) == set(np.unique(here.region))
+    vol, vol_here = mesh.signed_volumes(), here.signed_volumes()
+    assert (vol > 0).all()
+    assert vol.sum() == pytest.approx(vol_here.sum(), rel=1e-3)
+    breast = [REGIONS["breast_left"], REGIONS["breast_right"]]
+    for codes, rel in ((breast, 0.01), ([REGIONS["muscle"]], 0.01),
+                       # a side's tets are those whose centroid lies on its side of the
+                       # midline: the other surface's mesh moved 1.3 % across it
+                       ([REGIONS["breast_left"]], 0.03), ([REGIONS["breast_right"]], 0.03)):
+        assert vol[np.isin(mesh.region, codes)].sum() == pytest.approx(
+            vol_here[np.isin(here.region, codes)].sum(), rel=rel)
     empty = sitk.GetImageFromArray(np.zeros(sitk.GetArrayViewFromImage(labels).shape, np.uint8))
     empty.CopyInformation(labels)
     sitk.WriteImage(empty, str(tmp_path / "empty.nii.gz"))
