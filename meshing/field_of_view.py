@@ -7,7 +7,7 @@ comes back into view in another position (prone) without the model having it. Me
 five subjects of the validation suite (truth labels; the fitted model's skin against FEBio's,
 so neither registration nor measured skin enters; ``bench/fov_cut.py``,
 ``bench/results/fov_cut_2026-12-02.json``): within 15 mm of the cut faces the skin is off by
-0.46-0.73 mm on average in the reference position itself and 0.67-1.32 mm in prone, elsewhere
+0.46-0.71 mm on average in the reference position itself and 0.67-1.32 mm in prone, elsewhere
 0.15-0.54 mm; the coil's small-soft-000, whose supine truth put 5346 mm^3 of the right breast
 outside the field of view, the most (prone 1.32 mm, 9.1 mm at most). The cut share of
 :func:`breast_cut` says where this applies; what it costs depends on how much tissue crosses
