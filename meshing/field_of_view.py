@@ -21,17 +21,12 @@ import numpy as np
 from mechanics.mesh import BREAST_SIDE, Mesh
 from meshing.labels import Grid
 from meshing.sets import tet_faces
-from meshing.surface import fov_faces
+from meshing.surface import fov_faces, triangle_areas
 
 __all__ = ["CUT_SHARE", "breast_cut", "cut_warning"]
 
 #: Share of a breast's skin area above which the cut is said to matter (:func:`cut_warning`).
 CUT_SHARE = 0.05
-
-
-def _areas(nodes: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    a, b, c = (nodes[faces[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
 def breast_cut(mesh: Mesh, grid: Grid) -> dict[str, dict[str, float]]:
@@ -41,7 +36,7 @@ def breast_cut(mesh: Mesh, grid: Grid) -> dict[str, dict[str, float]]:
     bf, owner, _, _ = tet_faces(mesh.tets)
     side = np.array([BREAST_SIDE.get(int(r), 0) for r in mesh.region])[owner]
     cut = fov_faces(mesh.nodes, bf, grid)
-    area = _areas(mesh.nodes, bf)
+    area = triangle_areas(mesh.nodes, bf)
     out = {}
     for name, code in (("left", 1), ("right", 3)):
         on = side == code

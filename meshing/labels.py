@@ -65,6 +65,14 @@ class Grid:
             size=tuple(int(s) for s in image.GetSize()),
         )
 
+    @classmethod
+    def of_file(cls, path) -> Grid:
+        """The grid of an image file, from its header alone."""
+        reader = sitk.ImageFileReader()
+        reader.SetFileName(str(path))
+        reader.ReadImageInformation()
+        return cls.of(reader)  # the reader answers the image's geometry getters
+
     def to_physical(self, ijk: np.ndarray) -> np.ndarray:
         """(n, 3) continuous voxel indices (i, j, k) -> (n, 3) physical mm."""
         return self.origin + (np.asarray(ijk, dtype=float) * self.spacing) @ self.direction.T

@@ -217,10 +217,7 @@ PARALLEL_VOXELS = 4_000_000
 def worth_a_worker(path) -> bool:
     """Whether the label map in ``path`` has at least :data:`PARALLEL_VOXELS` voxels (its
     header only is read)."""
-    reader = sitk.ImageFileReader()
-    reader.SetFileName(str(path))
-    reader.ReadImageInformation()
-    return int(np.prod(reader.GetSize())) >= PARALLEL_VOXELS
+    return int(np.prod(Grid.of_file(path).size)) >= PARALLEL_VOXELS
 
 
 class skin_surfaces:

@@ -187,13 +187,11 @@ def problem_stage(subject, reg_dir: Path, mesh_dir: Path,
 def _field_of_view(mesh_path: Path, labels_path: Path, reference: str) -> dict:
     """``cut`` (:func:`meshing.field_of_view.breast_cut` of the mesh in the reference label
     map's grid) and ``warning`` (None, or logged here)."""
-    import SimpleITK as sitk
-
     from mechanics.mesh import Mesh
     from meshing.field_of_view import breast_cut, cut_warning
     from meshing.labels import Grid
 
-    cut = breast_cut(Mesh.load_npz(mesh_path), Grid.of(sitk.ReadImage(str(labels_path))))
+    cut = breast_cut(Mesh.load_npz(mesh_path), Grid.of_file(labels_path))
     warning = cut_warning(cut, reference)
     if warning:
         log.warning("%s", warning)

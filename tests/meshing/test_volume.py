@@ -228,7 +228,7 @@ def test_tets_hanging_by_an_edge_or_a_vertex_are_not_the_main_body():
     assert np.flatnonzero(~body).tolist() == [len(tets) - 2, len(tets) - 1]
 
 
-def test_mesh_made_in_a_worker_process_equals_the_one_made_here(boxes, tmp_path, monkeypatch):
+def test_mesh_made_in_a_worker_process_matches_the_one_made_here(boxes, tmp_path, monkeypatch):
     """The pipeline meshes an adult reference in a ``python -m meshing.background`` worker
     beside its other stages: the mesh of the same label map, at the size asked, with every
     set; a worker's error is raised when the result is taken; leaving the context stops a
