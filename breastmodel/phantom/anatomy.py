@@ -100,6 +100,10 @@ class Anatomy:
         Distance below each breast's lower edge of its inframammary-fold marker, mm.
     fov_min, fov_max
         Field-of-view box (patient frame = image frame before motion), mm.
+    body_min, body_max
+        Box the body is cut to for the truth's mesh (patient frame, mm; None: the field of
+        view). A breast coil's field of view cuts a body that goes on past it: its truth
+        spans the torso while its scans see the coil's box (:attr:`body_box`).
     rotation_center
         Centre of the random rigid rotations, mm (the middle of the breast region keeps
         motions from pushing the breasts out of the field of view).
@@ -135,6 +139,8 @@ class Anatomy:
     imf_gap: float = 8.0
     fov_min: tuple[float, float, float] = (-160.0, -185.0, -100.0)
     fov_max: tuple[float, float, float] = (160.0, -5.0, 100.0)
+    body_min: tuple[float, float, float] | None = None
+    body_max: tuple[float, float, float] | None = None
     rotation_center: tuple[float, float, float] = (0.0, -100.0, -10.0)
     chest_wall: str = "torso"
     slab_half_width: float = 140.0
@@ -168,6 +174,13 @@ class Anatomy:
             fov_max=(85.0, -10.0, 50.0),
             rotation_center=(0.0, -55.0, 0.0),
         )
+
+    @property
+    def body_box(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(lo, hi) of the box the truth's mesh spans: the body box and the field of view."""
+        lo = tuple(map(min, self.body_min or self.fov_min, self.fov_min))
+        hi = tuple(map(max, self.body_max or self.fov_max, self.fov_max))
+        return lo, hi
 
     def with_fov(self, fov_min, fov_max) -> Anatomy:
         """Copy with another field of view (e.g. a crop around one breast)."""

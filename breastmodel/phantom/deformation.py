@@ -124,7 +124,7 @@ def position_deformation(anatomy: Anatomy, sim: SimulatedPosition, *,
     edge = _longest_edge(x, mesh.tets)
     all_tree = cKDTree(x)
     reach = band_mm + edge
-    lo, hi = (np.asarray(b, float) for b in (field_box or (anatomy.fov_min, anatomy.fov_max)))
+    lo, hi = (np.asarray(b, float) for b in (field_box or anatomy.body_box))
 
     def u(points: np.ndarray) -> np.ndarray:
         p = np.asarray(points, float)

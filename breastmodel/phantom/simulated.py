@@ -61,12 +61,13 @@ class SimulatedPosition:
 
 def stress_free_labels(anatomy: Anatomy, *, voxel_size: float = 1.0):
     """Segmentation-convention label map (sitk.Image, uint8: 0 background, 1 breast,
-    2 muscle, 3 gland) of the stress-free anatomy over its field of view, patient frame."""
+    2 muscle, 3 gland) of the stress-free anatomy over its body box (``Anatomy.body_box``:
+    the field of view unless the body goes on past it), patient frame."""
     import SimpleITK as sitk
 
     from breastmodel.phantom.voxelize import Grid, voxelize
 
-    grid = Grid.from_box(anatomy.fov_min, anatomy.fov_max, voxel_size)
+    grid = Grid.from_box(*anatomy.body_box, voxel_size)
     tissue = voxelize(anatomy, grid)
     img = sitk.GetImageFromArray(tissue.seg)
     img.SetSpacing(tuple(map(float, grid.spacing_xyz)))

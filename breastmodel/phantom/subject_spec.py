@@ -26,7 +26,8 @@ __all__ = ["SubjectSpec", "CUPS", "FOV_KINDS", "PHYSICS", "SIZES", "VOXEL_SPACIN
 
 SIZES = ("small", "full")
 #: ``torso``: the whole torso width, cut behind the breasts' base; ``coil``: a dedicated breast
-#: coil's box, the body cut by the image boundary at the sides and behind; ``slab``: a muscle
+#: coil's box, the body cut by the image boundary at the sides and behind (the body, and its
+#: truth, go on past every cut: :data:`BODY_BEYOND_MM`); ``slab``: a muscle
 #: slab fixed at its posterior face and free at its sides, meeting air.
 FOV_KINDS = ("torso", "coil", "slab")
 #: Adult (``"full"``) breast base half-width (x), half-height (z) and projection, mm, per cup.
@@ -83,6 +84,9 @@ PHYSICS: dict[str, tuple[dict[int, dict], dict[str, dict]]] = {
     "fascia": ({}, {"fascia": {"E": 120.0, "thickness": 0.1}}),
     "ligaments": ({}, {"ligaments": {"E": 100.0}}),
 }
+#: How far the body (and the truth's mesh) goes on past the scan's cuts behind, above and
+#: below the breasts, mm for the adult anatomy (scaled by the size).
+BODY_BEYOND_MM = 40.0
 #: Scale of a size's anatomy relative to the adult one.
 _SCALE = {"small": 0.5, "full": 1.0}
 
@@ -283,15 +287,25 @@ class SubjectSpec:
             x_half = an.slab_half_width + margin
             y_hi = margin
             z_half = an.slab_half_height + margin
-        elif self.fov == "coil":
-            x_half, y_hi = 0.8 * width, -0.45 * depth
         else:
             x_half, y_hi = width + margin, -0.1 * depth
+        body = {}
+        if not slab:
+            # The body goes on past the scan's cuts (behind, above and below; a coil's box
+            # also at the sides): the truth spans the torso's width and BODY_BEYOND_MM * s
+            # more behind, above and below, the scans see the field of view. Until
+            # 2026-12-02 the truth was cut to the field of view, so it had free faces where
+            # the model has them too: the model's own truncation, hidden from the suite.
+            beyond = BODY_BEYOND_MM * s
+            body = {"body_min": (-float(x_half), float(y_lo), -float(z_half + beyond)),
+                    "body_max": (float(x_half), float(y_hi + beyond), float(z_half + beyond))}
+        if self.fov == "coil":
+            x_half, y_hi = 0.8 * width, -0.45 * depth
         y_mid = float(np.mean([an.chest_surface_y(cx) - 0.5 * b.projection
                                for b in (left, right)]))
         return replace(an, fov_min=(-float(x_half), float(y_lo), -float(z_half)),
                        fov_max=(float(x_half), float(y_hi), float(z_half)),
-                       rotation_center=(0.0, y_mid, 0.0))
+                       rotation_center=(0.0, y_mid, 0.0), **body)
 
     def truth_model(self) -> TruthModel:
         """The truth physics (:func:`breastmodel.phantom.family.truth_model`)."""

@@ -164,6 +164,32 @@ def test_coil_fov_cuts_the_body_at_the_sides_and_behind():
     assert a_coil.fov_max[0] < a_coil.torso_half_width < a_torso.fov_max[0]
 
 
+def test_the_body_goes_on_past_every_cut_of_the_scan():
+    """The truth's mesh spans the body beyond the field of view where a scan cuts it (behind,
+    above and below; a coil's box at the sides too), so FEBio's truth has no free face where
+    the model has one; a slab, which the field of view holds whole, stays as it is."""
+    from breastmodel.phantom.simulated import stress_free_labels
+    from breastmodel.phantom.subject_spec import BODY_BEYOND_MM
+
+    beyond = BODY_BEYOND_MM * 0.5  # small subjects
+    for fov in ("coil", "torso"):
+        an = draw_spec(4, fov=fov).anatomy()
+        (lo, hi), fov_lo, fov_hi = an.body_box, np.array(an.fov_min), np.array(an.fov_max)
+        assert hi[1] >= fov_hi[1] + beyond - 1e-9  # behind (the coil's cut lies further in)
+        assert hi[2] == pytest.approx(fov_hi[2] + beyond) and lo[2] == pytest.approx(
+            fov_lo[2] - beyond)
+        assert lo[1] == pytest.approx(fov_lo[1])  # air in front: nothing to go on
+        assert hi[0] > an.torso_half_width  # the torso's whole width
+    coil = draw_spec(4, fov="coil").anatomy()
+    assert coil.body_box[1][0] > coil.fov_max[0] + 10.0  # the coil cuts the sides
+    slab = draw_spec(4, fov="slab").anatomy()
+    assert slab.body_box == (slab.fov_min, slab.fov_max)
+    # the truth's label map (what its mesh is made from) covers the body box
+    labels = stress_free_labels(coil, voxel_size=2.0)
+    extent = np.array(labels.GetSize()) * 2.0
+    assert np.allclose(extent, np.subtract(*coil.body_box[::-1]), atol=2.0)
+
+
 def test_cup_fat_gland_ptosis_and_asymmetry_change_the_anatomy():
     def vols(**kw):
         an = draw_spec(6, fov="torso", **{"ptosis": 0.0, **kw}).anatomy()
