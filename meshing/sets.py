@@ -36,6 +36,11 @@ def tet_faces(tets: np.ndarray):
     return faces[once], owner[once], faces[order[:, 0]], owner[order]
 
 
+#: The named sets' version, part of the pipeline's mesh stage key so that a cached mesh made
+#: before a set was added is made again: 2 added ``cut_breast`` and ``cut_muscle``.
+SETS_VERSION = 2
+
+
 def _fixed_faces(nodes, faces, masks: TissueMasks, grid: Grid) -> np.ndarray:
     """(k,) bool over exposed muscle faces: those facing the thorax interior.
 
@@ -172,6 +177,8 @@ def named_sets(nodes, tets, region, *, grid: Grid, masks: TissueMasks, x_mid: fl
             "skin_inferior": skin_inf,
             "fascia_superior": fas_sup,
             "fascia_inferior": fas_inf,
+            "cut_breast": np.unique(bfaces[breast_tet[bowner] & cut]),
+            "cut_muscle": np.unique(bfaces[muscle_tet[bowner] & cut]),
         },
         "face_sets": {"skin": skin, "interface": iface},
         "node_pairs": pairs,

@@ -281,7 +281,8 @@ def mesh_labels(
     -------
     Mesh
         With face sets ``skin``, ``interface``; node sets ``fixed``, ``skin``, ``interface``,
-        ``skin_superior``, ``skin_inferior``, ``fascia_superior``, ``fascia_inferior``;
+        ``skin_superior``, ``skin_inferior``, ``fascia_superior``, ``fascia_inferior``,
+        ``cut_breast``, ``cut_muscle`` (the nodes on the label map's field-of-view planes);
         node pairs ``ligament_inframammary``, ``ligament_medial``, ``ligament_lateral``.
 
     Raises

@@ -36,8 +36,9 @@ _SOLVER_KEYS = {f.name for f in fields(SolverOptions)}
 FIT_PARAMETER_KEYS = {"min", "max", "step", "values"}
 
 #: The defaults: a Neo-Hookean breast (1 kPa), a stiff muscle layer (10 kPa), fixed chest
-#: wall, the mesh sized by the breast ("auto"), the full-field inverse for the stress-free
-#: geometry, no fitting.
+#: wall (also where the reference scan cut it: ``mechanics.effects.cut_faces``), the mesh
+#: sized by the breast ("auto"), the full-field inverse for the stress-free geometry, no
+#: fitting.
 DEFAULTS: dict[str, Any] = {
     "preprocess": {},
     "segment": {},
@@ -53,7 +54,7 @@ DEFAULTS: dict[str, Any] = {
             "breast_right": {"name": "neo_hookean", "E": 1.0, "nu": 0.49},
             "muscle": {"name": "neo_hookean", "E": 10.0, "nu": 0.49},
         },
-        "effects": {"fixed": {"node_set": "fixed"}},
+        "effects": {"fixed": {"node_set": "fixed"}, "cut_faces": {}},
     },
     "solver": {"tol": 1e-6, "max_newton": 25, "initial_steps": 2, "max_cutbacks": 12},
     "stress_free": {"method": "inverse", "position": None, "lam": 0.5, "tol_mm": 0.05,

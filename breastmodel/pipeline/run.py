@@ -122,7 +122,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     R = Runner(out, progress, cache)
 
     seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
-    ref, mesh_cfg = subject.reference, {"mesh": cfg["mesh"]}
+    ref, mesh_cfg = subject.reference, _mesh_key(cfg["mesh"])
     seg_dirs, seg_keys, job = {}, {}, None
     with contextlib.ExitStack() as background:
         # the reference first: its mesh runs beside the other positions' segmentation and
@@ -154,6 +154,14 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
                                  problem_stage(subject, reg_dir, mesh_dir, skins_dir))
     return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs, inputs,
                     seg_keys)
+
+
+def _mesh_key(mesh: Mapping[str, Any]) -> dict:
+    """What the mesh stage is keyed on: the ``[mesh]`` table and the named sets' version (a
+    cached mesh without the sets the model now reads is made again)."""
+    from meshing.sets import SETS_VERSION
+
+    return {"mesh": mesh, "sets": SETS_VERSION}
 
 
 def _labels(seg_dirs: Mapping[str, Path], pos: str) -> Path:
@@ -237,7 +245,7 @@ def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str
     R, h = prep.runner, float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
     fine = {**cfg, "mesh": {**cfg["mesh"], "size_mm": h / 2}}
     ref = prep.subject.reference
-    mesh_dir, mesh_key = R.stage("mesh", {"mesh": fine["mesh"]}, [prep.segment_keys[ref]],
+    mesh_dir, mesh_key = R.stage("mesh", _mesh_key(fine["mesh"]), [prep.segment_keys[ref]],
                                  mesh_stage(_labels(prep.segment_dirs, ref), mesh_options(fine)),
                                  label=f"refinement: mesh {h / 2:g} mm")
     # the measured skins are the default problem's (they do not depend on the mesh)

@@ -34,7 +34,8 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
                  *, mesh_size_mm: float | str = "auto", E_start: float = 1.0,
                  E_muscle: float = 10.0) -> dict:
     """The resolved run config of one arm: the bulk model (Neo-Hookean breast and muscle,
-    posterior chest wall fixed), least-squares fit of one breast modulus on the calibration
+    posterior chest wall fixed, and where the scan cut it: ``cut_faces``), least-squares fit
+    of one breast modulus on the calibration
     positions, every position predicted.
 
     Parameters
@@ -57,7 +58,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
         "model": {"materials": {"breast_left": {**nh, "E": E_start},
                                 "breast_right": {**nh, "E": E_start},
                                 "muscle": {**nh, "E": E_muscle}},
-                  "effects": {"fixed": {"node_set": "fixed"}}},
+                  "effects": {"fixed": {"node_set": "fixed"}, "cut_faces": {}}},
         "fit": {"enabled": True, "method": "least_squares", "calibrate": calibrate,
                 "evaluate": held_out or None, "sensitivity": False,
                 "parameters": {FIT_PARAMETER: {"min": 0.05, "max": 5.0}}},

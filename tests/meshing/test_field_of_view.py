@@ -52,3 +52,19 @@ def test_a_field_of_view_through_one_breast_is_measured_and_named(whole_and_crop
     assert "left breast" not in said
     assert np.isclose(cut["right"]["share"], cut["right"]["cut_mm2"] / cut["right"]["skin_mm2"],
                       atol=1e-4)
+
+
+def test_the_nodes_on_the_cut_are_named_by_tissue(whole_and_cropped):
+    """``cut_breast`` / ``cut_muscle``: the nodes of the breast's and muscle's faces on the
+    label map's field-of-view planes (what ``mechanics.effects.cut_faces`` holds)."""
+    whole, cropped = (mesh for _, mesh in whole_and_cropped)
+    assert len(whole.node_sets["cut_breast"]) == len(whole.node_sets["cut_muscle"]) == 0
+    plane = cropped.nodes[:, 0].min()  # the cut at low x
+    y = {}
+    for name in ("cut_breast", "cut_muscle"):
+        p = cropped.nodes[cropped.node_sets[name]]
+        assert len(p) > 10, name
+        assert np.abs(p[:, 0] - plane).max() < 0.6, name  # all on the cut plane
+        y[name] = np.median(p[:, 1] - cropped.nodes[:, 1].min())
+    # the breast is the anterior 20 mm of the 40, the muscle behind it
+    assert y["cut_breast"] < 20.0 < y["cut_muscle"]

@@ -1,0 +1,96 @@
+"""Where the reference scan's field of view cut the body: the model's faces on the label map's
+cut planes (node sets ``cut_muscle`` and ``cut_breast``, :func:`meshing.sets.named_sets`),
+past which the body goes on and the model does not.
+
+A model meshed from a scan ends at the scan's edge with a free face; the body does not. This
+effect holds those faces as the tissue beyond them would: the chest wall's cut faces fixed
+(the wall goes on to the thorax), and the breast's cut faces held along their plane's normal
+(``breast = "normal"``: the tissue beyond keeps them from moving out of or into the cut,
+and they slide along it), fixed (``"fixed"``) or left free (``"free"``).
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+import numpy as np
+
+from mechanics.effects.base import (
+    Constraint,
+    Effect,
+    Option,
+    constraints_to_febio,
+    register_effect,
+)
+
+_BREAST = ("free", "normal", "fixed")
+
+
+def _normal_axis(nodes: np.ndarray, tets: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """(len(cut),) the axis (0, 1, 2) of each cut node's plane: the largest component of the
+    summed normals of the boundary faces whose three nodes are cut nodes."""
+    from meshing.sets import tet_faces
+
+    faces = tet_faces(tets)[0]
+    on = np.zeros(len(nodes), bool)
+    on[cut] = True
+    faces = faces[on[faces].all(1)]
+    p = nodes[faces]
+    n = np.abs(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
+    summed = np.zeros((len(nodes), 3))
+    for k in range(3):
+        np.add.at(summed, faces[:, k], n)
+    return np.argmax(summed[cut], axis=1)
+
+
+@register_effect
+class CutFaces(Effect):
+    """The model's faces on the reference scan's field-of-view planes held as the body beyond
+    them would hold them.
+
+    Options: ``muscle`` (bool, default True) fixes the muscle's cut nodes in x, y and z (those
+    of node set ``fixed`` are left to the effect that fixes them); ``breast``: ``"normal"``
+    fixes each breast cut node's displacement along its cut plane's normal,
+    ``"fixed"`` all three components, ``"free"`` (default) none. A mesh without these node
+    sets (made by another tool, or a two-mound mesh) knows no cut: nothing is held.
+    """
+
+    name = "cut_faces"
+    doc = "the faces on the reference's field-of-view cut held as the body beyond them would"
+    not_diagnosed = ("the scan's cut, held by default where the mesher found one (not yet a "
+                     "candidate)")
+    example = MappingProxyType({})
+    option_specs = (
+        Option("muscle", True, "fix the muscle's cut nodes", types=(bool,)),
+        Option("breast", "free", "the breast's cut nodes: free, normal or fixed",
+               types=(str,)),
+    )
+
+    def __init__(self, mesh, **values):
+        super().__init__(mesh, **values)
+        breast = self.options["breast"]
+        if breast not in _BREAST:
+            raise ValueError(f"effect 'cut_faces': breast must be one of {_BREAST}, got "
+                             f"{breast!r}")
+        held = np.asarray(mesh.node_sets.get("fixed", ()), np.int64)
+        sets = {k: np.asarray(mesh.node_sets.get(k, ()), np.int64)
+                for k in ("cut_muscle", "cut_breast")}
+        self._constraints = []
+        muscle = np.setdiff1d(sets["cut_muscle"], held)
+        if self.options["muscle"] and len(muscle):
+            self._constraints.append(Constraint(muscle, (0, 1, 2)))
+        cut = np.setdiff1d(sets["cut_breast"], held)
+        if self.options["muscle"]:
+            cut = np.setdiff1d(cut, muscle)
+        if breast == "fixed" and len(cut):
+            self._constraints.append(Constraint(cut, (0, 1, 2)))
+        elif breast == "normal" and len(cut):
+            axis = _normal_axis(np.asarray(mesh.nodes, float), np.asarray(mesh.tets), cut)
+            for k in range(3):
+                if (axis == k).any():
+                    self._constraints.append(Constraint(cut[axis == k], (k,)))
+
+    def constraints(self):
+        return list(self._constraints)
+
+    to_febio = constraints_to_febio
