@@ -1,15 +1,15 @@
 """Where the reference scan's field of view cut the model's breast: its boundary faces on the
 image's faces, which the body goes on past and the model does not.
 
-Near such a cut the model is less sure than elsewhere: its free face stands where the body had
-more tissue, and a soft breast that fell out of view in the reference (laterally, in supine)
-comes back into view in another position (prone) without the model having it. Measured on
-five subjects of the validation suite (truth labels; the fitted model's skin against FEBio's,
-so neither registration nor measured skin enters; ``bench/fov_cut.py``,
-``bench/results/fov_cut_2026-12-02.json``): within 15 mm of the cut faces the skin is off by
-0.46-0.71 mm on average in the reference position itself and 0.67-1.32 mm in prone, elsewhere
-0.15-0.54 mm; the coil's small-soft-000, whose supine truth put 5346 mm^3 of the right breast
-outside the field of view, the most (prone 1.32 mm, 9.1 mm at most). The cut share of
+Near such a cut the model is less sure than elsewhere: its free face stands where the body went
+on, and tissue that lay out of view in the reference (laterally, in supine) comes into view in
+another position (prone) without the model having it. The pipeline's default model holds the
+muscle's cut (``mechanics.effects.cut_faces``: the chest wall goes on to the thorax) and leaves
+the breast's free. Measured on the validation suite, whose truths go on past the cuts since
+2026-12-02 (truth labels; the fitted model's skin against FEBio's, so neither registration nor
+measured skin enters; ``bench/fov_cut.py``, ``bench/results/fov_cut_2026-12-02b.json``): within
+15 mm of the cut faces the skin is off by 0.56-0.97 mm on average (the coil small-000 in prone
+0.82 mm, 1.26 mm with the muscle's cut free), elsewhere 0.16-0.31 mm. The cut share of
 :func:`breast_cut` says where this applies; what it costs depends on how much tissue crosses
 the cut, which the reference alone cannot show.
 """
@@ -56,9 +56,9 @@ def cut_warning(cut: dict[str, dict[str, float]], reference: str) -> str | None:
     parts = [f"the {s} breast over {c['cut_mm2']:.0f} mm^2 ({100 * c['share']:.0f} % of its "
              "skin area)" for s, c in over.items()]
     return (f"field of view: the reference scan ({reference}) cuts " + " and ".join(parts)
-            + "; the model ends there while the body goes on, so within about 15 mm of the cut "
-              "its predicted skin is less sure than elsewhere (on the validation suite 0.5-1.3 "
-              "mm from the truth on average against 0.15-0.5 mm; more where a soft breast "
-              "falls out of view in the reference): judge the fit by the MHD over the skin "
-              "both surfaces show (mhd_overlap_mm), or scan the reference with a wider field "
-              "of view")
+            + "; the model ends there while the body goes on (the default model holds the "
+              "muscle's cut, cut_faces), so within about 15 mm of the cut its predicted skin "
+              "is less sure than elsewhere (on the validation suite 0.6-1.0 mm from the truth "
+              "on average against 0.2-0.3 mm): judge the fit by the MHD over the skin both "
+              "surfaces show (mhd_overlap_mm), or scan the reference with a wider field of "
+              "view")
