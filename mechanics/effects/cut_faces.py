@@ -29,9 +29,10 @@ _BREAST = ("free", "normal", "fixed")
 def _normal_axis(nodes: np.ndarray, tets: np.ndarray, cut: np.ndarray) -> np.ndarray:
     """(len(cut),) the axis (0, 1, 2) of each cut node's plane: the largest component of the
     summed normals of the boundary faces whose three nodes are cut nodes."""
-    from meshing.sets import tet_faces
+    from mechanics.mesh import sorted_tet_faces
 
-    faces = tet_faces(tets)[0]
+    faces, count = np.unique(sorted_tet_faces(tets), axis=0, return_counts=True)
+    faces = faces[count == 1]  # the boundary (orientation does not matter here)
     on = np.zeros(len(nodes), bool)
     on[cut] = True
     faces = faces[on[faces].all(1)]
