@@ -35,8 +35,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
                  E_muscle: float = 10.0) -> dict:
     """The resolved run config of one arm: the bulk model (Neo-Hookean breast and muscle,
     posterior chest wall fixed, and where the scan cut it: ``cut_faces``), least-squares fit
-    of one breast modulus on the calibration
-    positions, every position predicted.
+    of one breast modulus on the calibration positions, every position predicted.
 
     Parameters
     ----------
