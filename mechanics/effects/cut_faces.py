@@ -68,15 +68,12 @@ class CutFaces(Effect):
     option_specs = (
         Option("muscle", True, "fix the muscle's cut nodes", types=(bool,)),
         Option("breast", "free", "the breast's cut nodes: free, normal or fixed",
-               types=(str,)),
+               types=(str,), choices=_BREAST),
     )
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
         breast = self.options["breast"]
-        if breast not in _BREAST:
-            raise ValueError(f"effect 'cut_faces': breast must be one of {_BREAST}, got "
-                             f"{breast!r}")
         held = np.asarray(mesh.node_sets.get("fixed", ()), np.int64)
         sets = {k: np.asarray(mesh.node_sets.get(k, ()), np.int64)
                 for k in ("cut_muscle", "cut_breast")}
