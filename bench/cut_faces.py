@@ -4,7 +4,7 @@ default) and the breast's held along the cut's normal too.
 
 Each subject folder (``WORK/subjects/<subject>`` of ``bench/validate.py``, its truth beside it
 as ``<subject>_truth``) is run through the whole pipeline with the suite's config of ``--arm``
-(``breastmodel.validation.suite.suite_config``), once per variant of ``cut_faces``, into
+(``breastmodel.validation.suite.run_arm``), once per variant of ``cut_faces``, into
 ``--work/<subject>/<arm>/<variant>``; the table gives the fitted breast modulus against the
 truth's and the MHD of every position. Prints a table and writes ``--json`` (default
 ``bench/results/cut_faces.json``).
@@ -29,26 +29,17 @@ VARIANTS = {"free": None, "muscle": {}, "muscle+normal": {"breast": "normal"}}
 
 def run_variant(subject: Path, arm: str, table: dict | None, out: Path) -> dict:
     """One run of ``subject`` with the suite's config of ``arm`` and ``cut_faces`` as
-    ``table``: fitted modulus, the truth's, MHD and overlap MHD per position."""
-    from breastmodel.pipeline.config import resolve_config
-    from breastmodel.pipeline.run import run_subject
-    from breastmodel.validation.figures import truth_breast_E
-    from breastmodel.validation.suite import suite_config
-    from imaging.subject import read_subject
+    ``table`` (:func:`breastmodel.validation.suite.run_arm`): fitted modulus, the truth's,
+    MHD and overlap MHD per position."""
+    from breastmodel.validation.suite import run_arm
 
-    truth = subject.parent / f"{subject.name}_truth"
-    sub = read_subject(subject)
-    cfg = json.loads(json.dumps(suite_config(arm, truth, list(sub.positions), sub.reference)))
-    cfg["model"]["effects"].pop("cut_faces", None)
-    if table is not None:
-        cfg["model"]["effects"]["cut_faces"] = table
-    run_subject(subject, resolve_config(cfg, where="bench cut_faces"), out)
-    params = json.loads((out / "params.json").read_text())
-    metrics = json.loads((out / "metrics.json").read_text())["positions"]
-    return {"E_fit": params["parameters"]["materials.breast_left.E"],
-            "E_truth": truth_breast_E(truth).get("left"),
-            "mhd_mm": {p: round(m["mhd_mm"], 3) for p, m in metrics.items()},
-            "mhd_overlap_mm": {p: round(m["mhd_overlap_mm"], 3) for p, m in metrics.items()}}
+    r = run_arm(subject, subject.parent / f"{subject.name}_truth", out, arm,
+                effects={"cut_faces": table})
+    if r["error"]:
+        raise SystemExit(f"bench cut_faces: {subject.name} [{arm}]: {r['error']}")
+    return {"E_fit": r["fitted"]["breast_E"], "E_truth": r["truth_E"].get("left"),
+            **{k: {p: round(v, 3) for p, v in r[k].items()}
+               for k in ("mhd_mm", "mhd_overlap_mm")}}
 
 
 def main() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,8 @@ def split_positions(positions: Sequence[str], reference: str) -> tuple[list[str]
 
 def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], reference: str,
                  *, mesh_size_mm: float | str = "auto", E_start: float = 1.0,
-                 E_muscle: float = 10.0) -> dict:
+                 E_muscle: float = 10.0,
+                 effects: Mapping[str, Mapping[str, Any] | None] | None = None) -> dict:
     """The resolved run config of one arm: the bulk model (Neo-Hookean breast and muscle,
     posterior chest wall fixed, and where the scan cut it: ``cut_faces``), least-squares fit
     of one breast modulus on the calibration positions, every position predicted.
@@ -45,6 +46,8 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
     mesh_size_mm : tet edge of the fitted model, mm, or "auto" (the pipeline's default)
     E_start : starting breast modulus of the fit, kPa
     E_muscle : muscle modulus, kPa (held fixed)
+    effects : effect key -> table replacing the bulk model's, or None leaving it out (a
+        study's variant of the model, e.g. ``bench/cut_faces.py``)
     """
     from breastmodel.pipeline.config import resolve_config
 
@@ -62,6 +65,11 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
                 "evaluate": held_out or None, "sensitivity": False,
                 "parameters": {FIT_PARAMETER: {"min": 0.05, "max": 5.0}}},
     }
+    for key, table in (effects or {}).items():
+        if table is None:
+            raw["model"]["effects"].pop(key, None)
+        else:
+            raw["model"]["effects"][key] = dict(table)
     if arm == "truth_labels":
         raw["segment"] = {"labels": str(Path(truth_dir).resolve())}
     elif arm == "reference_truth":
@@ -71,8 +79,10 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
 
 
 def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm: str, *,
-            mesh_size_mm: float | str = "auto", progress: bool = False) -> dict[str, Any]:
+            mesh_size_mm: float | str = "auto", progress: bool = False,
+            effects: Mapping[str, Mapping[str, Any] | None] | None = None) -> dict[str, Any]:
     """Run one arm of one subject and collect its figures; a failing stage is recorded.
+    ``effects`` changes the bulk model (see :func:`suite_config`).
 
     Returns
     -------
@@ -92,7 +102,8 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
     subject = read_subject(subject_dir)
     positions, reference = list(subject.positions), subject.reference
     calibrate, held_out = split_positions(positions, reference)
-    cfg = suite_config(arm, truth_dir, positions, reference, mesh_size_mm=mesh_size_mm)
+    cfg = suite_config(arm, truth_dir, positions, reference, mesh_size_mm=mesh_size_mm,
+                       effects=effects)
     t0 = time.perf_counter()
     error = failed = None
     try:

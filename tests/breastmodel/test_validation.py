@@ -42,6 +42,10 @@ def test_suite_config_arms(tmp_path):
     assert ref["segment"] == {"labels": str(tmp_path.resolve()), "labels_positions": ["supine"]}
     with pytest.raises(ValueError, match="unknown arm"):
         suite_config("nope", tmp_path, ["prone", "supine"], "supine")
+    assert set(cfg["model"]["effects"]) == {"fixed", "cut_faces"}
+    free = suite_config("truth_labels", tmp_path, ["prone", "supine"], "supine",
+                        effects={"cut_faces": None, "tied": {}})
+    assert set(free["model"]["effects"]) == {"fixed", "tied"}  # a study's variant
 
 
 def test_targets_verdicts():
