@@ -76,7 +76,7 @@ def _bounds(param) -> tuple[float, float]:
     return (float(param.lower), float(param.upper))
 
 
-def _view(model: Mapping[str, Any], regions, node_pairs):
+def _view(model: Mapping[str, Any], regions, node_pairs, node_sets=None):
     """The :class:`mechanics.effects.ModelView` of a model: the first instance of each
     effect it uses (name -> table, name -> key), its materials and what the mesh has."""
     from mechanics.effects import ModelView
@@ -90,7 +90,8 @@ def _view(model: Mapping[str, Any], regions, node_pairs):
             keys[name] = key
     return ModelView(used, keys, dict(model.get("materials", {})),
                      None if regions is None else frozenset(regions),
-                     None if node_pairs is None else frozenset(node_pairs))
+                     None if node_pairs is None else frozenset(node_pairs),
+                     None if node_sets is None else frozenset(node_sets))
 
 
 def _from_variant(v) -> Candidate:
@@ -107,6 +108,7 @@ def _add_variants(variants, out: list[Candidate], skipped: list[dict]) -> None:
 
 def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset = frozenset(),
                          *, regions: set[int] | None = None, node_pairs: set[str] | None = None,
+                         node_sets: set[str] | None = None,
                          ) -> tuple[list[Candidate], list[dict]]:
     """Every candidate change of ``model`` (a resolved ``[model]`` table).
 
@@ -117,6 +119,7 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
         split)
     regions : region codes of the mesh (gland candidates need gland regions)
     node_pairs : node-pair set names of the mesh (ligament groups need theirs)
+    node_sets : names of the mesh's node sets that hold nodes (the scan's cut needs its own)
 
     Returns
     -------
@@ -126,7 +129,7 @@ def enumerate_candidates(model: Mapping[str, Any], fitted: set[str] | frozenset 
     from mechanics.effects import EFFECTS
 
     fitted = {p for f in fitted for p in str(f).split("|")}
-    view = _view(model, regions, node_pairs)
+    view = _view(model, regions, node_pairs, node_sets)
     out: list[Candidate] = []
     skipped: list[dict] = []
     # Effects the model does not use.

@@ -148,7 +148,8 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
     if candidates is None:
         candidates, skipped = enumerate_candidates(
             model, set(fitted), regions={int(r) for r in np.unique(problem.mesh.region)},
-            node_pairs=set(problem.mesh.node_pairs))
+            node_pairs=set(problem.mesh.node_pairs),
+            node_sets={k for k, v in problem.mesh.node_sets.items() if len(v)})
     else:
         skipped = []
     plan = _plan_variants(cfg, model, fitted, candidates)

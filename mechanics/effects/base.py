@@ -105,6 +105,7 @@ class ModelView:
     materials : region name -> material table
     regions : region codes of the mesh (None: unknown)
     node_pairs : node-pair set names of the mesh (None: unknown)
+    node_sets : names of the mesh's node sets that hold nodes (None: unknown)
     """
 
     used: Mapping[str, Mapping[str, Any]]
@@ -112,6 +113,7 @@ class ModelView:
     materials: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     regions: frozenset[int] | None = None
     node_pairs: frozenset[str] | None = None
+    node_sets: frozenset[str] | None = None
 
 
 def bounds(param: Param) -> tuple[float, float]:

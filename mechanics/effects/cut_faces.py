@@ -11,6 +11,10 @@ the fitted breast modulus is +41 % of the truth with the cut free, +1.9 % with t
 held and -11 % with the breast's held along the normal too (fixed: -16 %, against a first
 truth extended at the sides only): README, "The body goes on past the scan's cut";
 ``bench/cut_faces.py``.
+
+A diagnosis candidate (the field-of-view truncation, a cause that is not the tissue's) where
+the mesh has cut nodes: the effect switched on where a model lacks it, and what a model using
+it leaves free at the cut, held.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from mechanics.effects.base import (
     Constraint,
     Effect,
     Option,
+    Variant,
     constraints_to_febio,
     register_effect,
 )
@@ -62,14 +67,41 @@ class CutFaces(Effect):
 
     name = "cut_faces"
     doc = "the faces on the reference's field-of-view cut held as the body beyond them would"
-    not_diagnosed = ("the scan's cut, held by default where the mesher found one (not yet a "
-                     "candidate)")
     example = MappingProxyType({})
     option_specs = (
         Option("muscle", True, "fix the muscle's cut nodes", types=(bool,)),
         Option("breast", "free", "the breast's cut nodes: free, normal or fixed",
                types=(str,), choices=_BREAST),
     )
+
+    @staticmethod
+    def _cut(view, which: str) -> bool:
+        """Whether the mesh may have cut nodes of ``which`` (True where it is unknown)."""
+        return view.node_sets is None or f"cut_{which}" in view.node_sets
+
+    @classmethod
+    def variants(cls, view):
+        """The cut held as by default (an on/off change), where the mesh has one."""
+        if not (cls._cut(view, "muscle") or cls._cut(view, "breast")):
+            return [Variant(cls.name, skip="the mesh has no field-of-view cut")]
+        return [Variant(cls.name, "the field-of-view cut: the muscle's cut faces fixed as the "
+                        "chest wall beyond them", {cls.name: {}})]
+
+    @classmethod
+    def option_variants(cls, key, table, view):
+        """What the model leaves free at the cut, held: the muscle's faces (fixed), the
+        breast's (along their plane's normal, the tissue beyond sliding along the cut)."""
+        out = []
+        if not table.get("muscle", True) and cls._cut(view, "muscle"):
+            out.append(Variant(f"{cls.name}:muscle", "the field-of-view cut: the muscle's cut "
+                               "faces fixed as the chest wall beyond them",
+                               {key: {**table, "muscle": True}}, kind="option"))
+        if table.get("breast", "free") == "free" and cls._cut(view, "breast"):
+            out.append(Variant(f"{cls.name}:breast_normal", "the field-of-view cut: the "
+                               "breast's cut faces held along their normal as the tissue "
+                               "beyond them", {key: {**table, "breast": "normal"}},
+                               kind="option"))
+        return out
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)

@@ -78,6 +78,33 @@ def test_every_unused_registered_effect_is_a_candidate_and_a_new_one_appears_by_
     assert "tied" not in cands
 
 
+def test_the_scans_cut_is_a_candidate_only_where_the_mesh_has_one():
+    """The field-of-view cut (``cut_faces``): held as by default where the model lacks it, the
+    breast's cut held along its normal where the model leaves it free; a mesh with no cut
+    nodes gets neither, and says why."""
+    sets = {"fixed", "cut_muscle", "cut_breast"}
+    names = {c.name for c in enumerate_candidates(BASE, {TIED_E}, node_sets=sets)[0]}
+    assert "cut_faces" in names
+    cands, skipped = enumerate_candidates(BASE, {TIED_E}, node_sets={"fixed"})
+    assert not {c.name for c in cands if c.name.startswith("cut_faces")}
+    assert {"name": "cut_faces", "reason": "the mesh has no field-of-view cut"} in skipped
+
+    held = _with(BASE, cut_faces={})
+    cands = {c.name: c for c in enumerate_candidates(held, {TIED_E}, node_sets=sets)[0]}
+    assert cands["cut_faces:breast_normal"].effects == {
+        "cut_faces": {"breast": "normal"}}
+    assert cands["cut_faces:breast_normal"].kind == "option"
+    assert "cut_faces" not in cands and "cut_faces:muscle" not in cands  # already held
+    only_muscle = {c.name for c in enumerate_candidates(
+        held, {TIED_E}, node_sets={"fixed", "cut_muscle"})[0]}
+    assert not {n for n in only_muscle if n.startswith("cut_faces")}
+    loose = _with(BASE, cut_faces={"muscle": False, "breast": "normal"})
+    cands = {c.name: c for c in enumerate_candidates(loose, {TIED_E}, node_sets=sets)[0]}
+    assert cands["cut_faces:muscle"].effects == {
+        "cut_faces": {"muscle": True, "breast": "normal"}}
+    assert "cut_faces:breast_normal" not in cands
+
+
 def test_add_to_config_switches_the_effect_on_and_fits_its_parameters():
     cfg = _config(BASE)
     new = add_to_config(cfg, candidate_by_name(cfg["model"], "skin"),
@@ -232,6 +259,8 @@ def test_a_fitted_parameter_that_moves_with_an_unseen_effect_is_named():
          "estimate": {TIED_E: 1.55}},  # -3 %: the modulus does not depend on it
         {"name": "strain_stiffening", "significant": False, "explained": 0.06,
          "estimate": {TIED_E: 1.28}},
+        {"name": "cut_faces:breast_normal", "significant": False, "explained": -0.66,
+         "estimate": {TIED_E: 1.3}},  # the data reject it: no confounder
     ]
     found = confounders(ranking, {TIED_E: 1.6})
     assert [(f["name"], round(f["change"], 4)) for f in found] == [
