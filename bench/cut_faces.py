@@ -1,6 +1,7 @@
 """What holding the reference scan's cut buys: the validation suite's bulk fit of made subjects
 with the model's faces on the cut left free, the muscle's held (``cut_faces``, the pipeline's
-default) and the breast's held along the cut's normal too.
+default), the breast's held along the cut's normal too, or the muscle's held along its
+normal only.
 
 Each subject folder (``WORK/subjects/<subject>`` of ``bench/validate.py``, its truth beside it
 as ``<subject>_truth``) is run through the whole pipeline with the suite's config of ``--arm``
@@ -24,7 +25,8 @@ if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
     sys.path[0] = str(ROOT)
 
 #: variant -> the ``cut_faces`` table (None: the effect left out of the model).
-VARIANTS = {"free": None, "muscle": {}, "muscle+normal": {"breast": "normal"}}
+VARIANTS = {"free": None, "muscle": {}, "muscle+normal": {"breast": "normal"},
+            "muscle_normal": {"muscle": "normal"}}
 
 
 def run_variant(subject: Path, arm: str, table: dict | None, out: Path) -> dict:

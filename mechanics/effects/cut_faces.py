@@ -32,7 +32,7 @@ from mechanics.effects.base import (
     register_effect,
 )
 
-_BREAST = ("free", "normal", "fixed")
+_HOLDS = ("free", "normal", "fixed")
 
 
 def _normal_axis(nodes: np.ndarray, tets: np.ndarray, cut: np.ndarray) -> np.ndarray:
@@ -58,20 +58,22 @@ class CutFaces(Effect):
     """The model's faces on the reference scan's field-of-view planes held as the body beyond
     them would hold them.
 
-    Options: ``muscle`` (bool, default True) fixes the muscle's cut nodes in x, y and z (those
-    of node set ``fixed`` are left to the effect that fixes them); ``breast``: ``"normal"``
-    fixes each breast cut node's displacement along its cut plane's normal,
-    ``"fixed"`` all three components, ``"free"`` (default) none. A mesh without these node
-    sets (made by another tool, or a two-mound mesh) knows no cut: nothing is held.
+    Options ``muscle`` (default ``"fixed"``) and ``breast`` (default ``"free"``), each
+    ``"fixed"`` (the cut nodes held in x, y and z), ``"normal"`` (held along their cut
+    plane's normal, free to slide along it) or ``"free"``. Nodes of node set ``fixed`` are
+    left to the effect that fixes them, and a node on both cuts to the muscle's where that is
+    fixed. A mesh without these node sets (made by another tool, or a two-mound mesh) knows no
+    cut: nothing is held.
     """
 
     name = "cut_faces"
     doc = "the faces on the reference's field-of-view cut held as the body beyond them would"
     example = MappingProxyType({})
     option_specs = (
-        Option("muscle", True, "fix the muscle's cut nodes", types=(bool,)),
+        Option("muscle", "fixed", "the muscle's cut nodes: fixed, normal or free",
+               types=(str,), choices=_HOLDS),
         Option("breast", "free", "the breast's cut nodes: free, normal or fixed",
-               types=(str,), choices=_BREAST),
+               types=(str,), choices=_HOLDS),
     )
 
     @staticmethod
@@ -89,13 +91,13 @@ class CutFaces(Effect):
 
     @classmethod
     def option_variants(cls, key, table, view):
-        """What the model leaves free at the cut, held: the muscle's faces (fixed), the
+        """What the model leaves loose at the cut, held: the muscle's faces (fixed), the
         breast's (along their plane's normal, the tissue beyond sliding along the cut)."""
         out = []
-        if not table.get("muscle", True) and cls._cut(view, "muscle"):
+        if table.get("muscle", "fixed") != "fixed" and cls._cut(view, "muscle"):
             out.append(Variant(f"{cls.name}:muscle", "the field-of-view cut: the muscle's cut "
                                "faces fixed as the chest wall beyond them",
-                               {key: {**table, "muscle": True}}, kind="option"))
+                               {key: {**table, "muscle": "fixed"}}, kind="option"))
         if table.get("breast", "free") == "free" and cls._cut(view, "breast"):
             out.append(Variant(f"{cls.name}:breast_normal", "the field-of-view cut: the "
                                "breast's cut faces held along their normal as the tissue "
@@ -105,24 +107,20 @@ class CutFaces(Effect):
 
     def __init__(self, mesh, **values):
         super().__init__(mesh, **values)
-        breast = self.options["breast"]
         held = np.asarray(mesh.node_sets.get("fixed", ()), np.int64)
-        sets = {k: np.asarray(mesh.node_sets.get(k, ()), np.int64)
-                for k in ("cut_muscle", "cut_breast")}
+        cut = {k: np.setdiff1d(np.asarray(mesh.node_sets.get(f"cut_{k}", ()), np.int64), held)
+               for k in ("muscle", "breast")}
+        if self.options["muscle"] == "fixed":
+            cut["breast"] = np.setdiff1d(cut["breast"], cut["muscle"])
         self._constraints = []
-        muscle = np.setdiff1d(sets["cut_muscle"], held)
-        if self.options["muscle"] and len(muscle):
-            self._constraints.append(Constraint(muscle, (0, 1, 2)))
-        cut = np.setdiff1d(sets["cut_breast"], held)
-        if self.options["muscle"]:
-            cut = np.setdiff1d(cut, muscle)
-        if breast == "fixed" and len(cut):
-            self._constraints.append(Constraint(cut, (0, 1, 2)))
-        elif breast == "normal" and len(cut):
-            axis = _normal_axis(np.asarray(mesh.nodes, float), np.asarray(mesh.tets), cut)
-            for k in range(3):
-                if (axis == k).any():
-                    self._constraints.append(Constraint(cut[axis == k], (k,)))
+        for k, nodes in cut.items():
+            how = self.options[k]
+            if how == "fixed" and len(nodes):
+                self._constraints.append(Constraint(nodes, (0, 1, 2)))
+            elif how == "normal" and len(nodes):
+                axis = _normal_axis(np.asarray(mesh.nodes, float), np.asarray(mesh.tets), nodes)
+                self._constraints += [Constraint(nodes[axis == i], (i,)) for i in range(3)
+                                      if (axis == i).any()]
 
     def constraints(self):
         return list(self._constraints)

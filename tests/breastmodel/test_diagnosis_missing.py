@@ -98,10 +98,10 @@ def test_the_scans_cut_is_a_candidate_only_where_the_mesh_has_one():
     only_muscle = {c.name for c in enumerate_candidates(
         held, {TIED_E}, node_sets={"fixed", "cut_muscle"})[0]}
     assert not {n for n in only_muscle if n.startswith("cut_faces")}
-    loose = _with(BASE, cut_faces={"muscle": False, "breast": "normal"})
+    loose = _with(BASE, cut_faces={"muscle": "normal", "breast": "normal"})
     cands = {c.name: c for c in enumerate_candidates(loose, {TIED_E}, node_sets=sets)[0]}
     assert cands["cut_faces:muscle"].effects == {
-        "cut_faces": {"muscle": True, "breast": "normal"}}
+        "cut_faces": {"muscle": "fixed", "breast": "normal"}}
     assert "cut_faces:breast_normal" not in cands
 
 

@@ -49,12 +49,25 @@ def test_the_muscle_cut_is_fixed_and_the_breast_cut_left_free_by_default(mesh):
 
 def test_the_breast_cut_is_held_along_its_plane_normal_or_whole(mesh):
     breast = set(mesh.node_sets["cut_breast"].tolist()) - set(mesh.node_sets["fixed"].tolist())
-    normal = _held(EFFECTS["cut_faces"](mesh, breast="normal", muscle=False))
+    normal = _held(EFFECTS["cut_faces"](mesh, breast="normal", muscle="free"))
     assert normal[0] == breast and not normal[1] and not normal[2]  # the cut planes are x = +-w
     fixed = _held(EFFECTS["cut_faces"](mesh, breast="fixed"))
     assert all(breast <= fixed[k] for k in range(3))
     with pytest.raises(ValueError, match="breast must be one of"):
         EFFECTS["cut_faces"](mesh, breast="roller")
+
+
+def test_the_muscle_cut_may_slide_along_its_plane_or_be_left_free(mesh):
+    muscle = set(mesh.node_sets["cut_muscle"].tolist()) - set(mesh.node_sets["fixed"].tolist())
+    breast = set(mesh.node_sets["cut_breast"].tolist()) - set(mesh.node_sets["fixed"].tolist())
+    normal = _held(EFFECTS["cut_faces"](mesh, muscle="normal"))
+    assert normal[0] == muscle and not normal[1] and not normal[2]
+    assert not _held(EFFECTS["cut_faces"](mesh, muscle="free"))[0]
+    # where the muscle's cut is not fixed, a node on both cuts is held as the breast's
+    both = _held(EFFECTS["cut_faces"](mesh, muscle="normal", breast="fixed"))
+    assert breast & muscle and all(breast <= both[k] for k in range(3))
+    with pytest.raises(ValueError, match="muscle must be one of"):
+        EFFECTS["cut_faces"](mesh, muscle=True)
 
 
 def test_a_mesh_without_cut_sets_knows_no_cut(mesh):
