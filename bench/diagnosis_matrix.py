@@ -2,11 +2,13 @@
 
 Every case is a subject whose data carry one known cause of misfit that the fitted model
 lacks: a hidden physical effect, a misregistered position, an offset of the measured skin,
-or nothing ("none": noise only). The diagnosis runs on the fitted model; its answer is the
-best significant candidate, or "none". The table gives, per case, the truth, the answer, the
-truth's rank, its explained fraction and delta BIC, the verified worst MHD against the
-run's, and the wall time of the diagnosis; then top-1 and top-3 rates, false alarms on
-"none" and the confusion matrix. Results go to ``bench/results/diagnosis_matrix.json``.
+the scan's field-of-view cut left free in the model (``cut_faces``, on the FEBio suite,
+whose truths go on past the cut), or nothing ("none": noise only). The diagnosis runs on the
+fitted model; its answer is the best significant candidate, or "none". The table gives, per
+case, the truth, the answer, the truth's rank, its explained fraction and delta BIC, the
+verified worst MHD against the run's, and the wall time of the diagnosis; then top-1 and
+top-3 rates, false alarms on "none" and the confusion matrix. Results go to
+``bench/results/diagnosis_matrix.json``.
 
 Two suites:
 - ``--suite mounds`` (default): two-mound problems (:mod:`breastmodel.phantom.mounds`,
@@ -163,21 +165,32 @@ FEBIO_MEASUREMENT = {
 }
 
 
+#: The model's classes on the FEBio suite: the control subject (bulk truth, its body going on
+#: past the scan's cut) fitted with the suite's model changed so that it lacks what the
+#: label names. label -> the change of the model's effects (``suite_config(effects=...)``).
+FEBIO_MODEL = {
+    "cut_faces": {"cut_faces": None},  # the field-of-view cut left free
+}
+
+
 def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path | None
                 ) -> Iterator[Case]:
-    """Family subjects with FEBio truth, one per name of :data:`FEBIO_CASES` and seed."""
+    """Family subjects with FEBio truth, one per name of :data:`FEBIO_CASES`,
+    :data:`FEBIO_MEASUREMENT` or :data:`FEBIO_MODEL` and seed."""
     from breastmodel.validation.suite import family_maker, suite_config
     from imaging.subject import read_subject
 
     for name in names:
         for seed in seeds:
-            label, physics = (name, "bulk") if name in FEBIO_MEASUREMENT else FEBIO_CASES[name]
+            control = name in FEBIO_MEASUREMENT or name in FEBIO_MODEL
+            label, physics = (name, "bulk") if control else FEBIO_CASES[name]
             make = family_maker(size="small", cache=cache, physics=physics)
             tag = f"{name.replace(':', '_')}-{seed}"
-            base_tag = f"none-{seed}" if name in FEBIO_MEASUREMENT else tag
+            base_tag = f"none-{seed}" if control else tag
             subject, truth, _ = make(f"small-{seed}", root / base_tag / "subject")
             sub = read_subject(subject)
-            cfg = suite_config("truth_labels", truth, list(sub.positions), sub.reference)
+            cfg = suite_config("truth_labels", truth, list(sub.positions), sub.reference,
+                               effects=FEBIO_MODEL.get(name))
             if label == "regions:gland":
                 cfg["mesh"]["keep_gland"] = True
             if name not in FEBIO_MEASUREMENT:
@@ -201,7 +214,8 @@ def matches(answer: str, label: str) -> bool:
             or (label == "ligaments" and answer.startswith("ligaments:")))
 
 
-def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
+def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float | None = None
+                  ) -> dict:
     run_dir = out / (case.tag or case.label.replace(":", "_")) / "run"
     t0 = time.perf_counter()
     from breastmodel.pipeline.run import run_subject
@@ -223,7 +237,8 @@ def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
     t0 = time.perf_counter()
     cpu0 = os.times()
     d = rank_candidates(load_run(run_dir), progress=False, n_workers=workers,
-                        work_dir=run_dir / "diagnosis" / "evaluations")
+                        work_dir=run_dir / "diagnosis" / "evaluations",
+                        **({} if rim_mm is None else {"rim_mm": rim_mm}))
     cpu1 = os.times()
     wall = time.perf_counter() - t0
     names = [r["name"] for r in d["ranking"]]
@@ -236,7 +251,7 @@ def diagnose_case(case: Case, out: Path, *, workers: int) -> dict:
     wrong = next((r for r in d["ranking"] if truth and not matches(r["name"], case.label)
                   and r["n_parameters"] == truth["n_parameters"] and r.get("held_out")), None)
     return {
-        "label": case.label, "tag": case.tag, "answer": answer,
+        "label": case.label, "tag": case.tag, "answer": answer, "rim_mm": d["rim_mm"],
         "strength": "weak" if case.weak else "visible",
         "correct": matches(answer, case.label) or (case.weak and answer == "none"),
         "rank": names.index(truth["name"]) + 1 if truth else None,
@@ -289,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="3", help="febio suite: family seeds, comma list")
     ap.add_argument("--truth-cache", type=Path, default=None, help="febio suite: truth cache")
     ap.add_argument("--workers", type=int, default=0)
+    ap.add_argument("--rim-mm", type=float, default=None,
+                    help="skin left out near its open edge, mm (default: diagnose's)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/diagnosis_matrix"))
     ap.add_argument("--results", type=Path, default=None,
                     help="default bench/results/diagnosis_matrix[_febio].json")
@@ -296,7 +313,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="keep the results file's other rows (and its notes); rows of the "
                          "same case and seed are replaced")
     args = ap.parse_args(argv)
-    known = MOUND_CASES if args.suite == "mounds" else {**FEBIO_CASES, **FEBIO_MEASUREMENT}
+    known = (MOUND_CASES if args.suite == "mounds"
+             else {**FEBIO_CASES, **FEBIO_MEASUREMENT, **FEBIO_MODEL})
     names = [n for n in (args.cases or ",".join(known)).split(",") if n]
     unknown = sorted(set(names) - set(known))
     if unknown:
@@ -312,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'truth':<32} {'answer':<32} {'rank':>4} {'expl':>5} {'dBIC':>7} {'MHD':>6} "
           f"{'->':>6} {'diag s':>7}")
     for case in cases:
-        r = diagnose_case(case, args.out, workers=args.workers)
+        r = diagnose_case(case, args.out, workers=args.workers, rim_mm=args.rim_mm)
         rows.append(r)
         print(f"{case.tag or r['label']:<32} {r['answer']:<32} {_fmt(r['rank'], '4d'):>4} "
               f"{_fmt(r['explained'], '5.2f'):>5} {_fmt(r['delta_bic'], '7.1f'):>7} "
