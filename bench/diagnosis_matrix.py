@@ -49,6 +49,7 @@ sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 from breastmodel.config import write_json  # noqa: E402
 from breastmodel.diagnosis import load_run, rank_candidates  # noqa: E402
+from breastmodel.diagnosis.missing import RIM_MM  # noqa: E402
 from breastmodel.phantom.mounds import mound_problem  # noqa: E402
 from breastmodel.pipeline.config import resolve_config  # noqa: E402
 from breastmodel.pipeline.problem import move_measured_skin  # noqa: E402
@@ -214,8 +215,7 @@ def matches(answer: str, label: str) -> bool:
             or (label == "ligaments" and answer.startswith("ligaments:")))
 
 
-def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float | None = None
-                  ) -> dict:
+def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float = RIM_MM) -> dict:
     run_dir = out / (case.tag or case.label.replace(":", "_")) / "run"
     t0 = time.perf_counter()
     from breastmodel.pipeline.run import run_subject
@@ -237,8 +237,7 @@ def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float | None =
     t0 = time.perf_counter()
     cpu0 = os.times()
     d = rank_candidates(load_run(run_dir), progress=False, n_workers=workers,
-                        work_dir=run_dir / "diagnosis" / "evaluations",
-                        **({} if rim_mm is None else {"rim_mm": rim_mm}))
+                        work_dir=run_dir / "diagnosis" / "evaluations", rim_mm=rim_mm)
     cpu1 = os.times()
     wall = time.perf_counter() - t0
     names = [r["name"] for r in d["ranking"]]
@@ -304,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", default="3", help="febio suite: family seeds, comma list")
     ap.add_argument("--truth-cache", type=Path, default=None, help="febio suite: truth cache")
     ap.add_argument("--workers", type=int, default=0)
-    ap.add_argument("--rim-mm", type=float, default=None,
+    ap.add_argument("--rim-mm", type=float, default=RIM_MM,
                     help="skin left out near its open edge, mm (default: diagnose's)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/diagnosis_matrix"))
     ap.add_argument("--results", type=Path, default=None,

@@ -35,22 +35,30 @@ from mechanics.effects.base import (
 _HOLDS = ("free", "normal", "fixed")
 
 
-def _normal_axis(nodes: np.ndarray, tets: np.ndarray, cut: np.ndarray) -> np.ndarray:
-    """(len(cut),) the axis (0, 1, 2) of each cut node's plane: the largest component of the
-    summed normals of the boundary faces whose three nodes are cut nodes."""
+def _boundary(tets: np.ndarray) -> np.ndarray:
+    """(F, 3) the mesh's boundary faces, node-sorted (orientation does not matter here)."""
     from mechanics.mesh import sorted_tet_faces
 
     faces, count = np.unique(sorted_tet_faces(tets), axis=0, return_counts=True)
-    faces = faces[count == 1]  # the boundary (orientation does not matter here)
+    return faces[count == 1]
+
+
+def _normal_axis(nodes: np.ndarray, boundary: np.ndarray, cut: np.ndarray) -> np.ndarray:
+    """(len(cut),) the axis (0, 1, 2) of each cut node's plane: the largest component of the
+    summed normals of the boundary faces (:func:`_boundary`) whose three nodes are cut nodes."""
     on = np.zeros(len(nodes), bool)
     on[cut] = True
-    faces = faces[on[faces].all(1)]
+    faces = boundary[on[boundary].all(1)]
     p = nodes[faces]
     n = np.abs(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]))
     summed = np.zeros((len(nodes), 3))
     for k in range(3):
         np.add.at(summed, faces[:, k], n)
     return np.argmax(summed[cut], axis=1)
+
+
+#: The candidate that holds the muscle's cut, as a model lacking it or leaving it loose gets it.
+_MUSCLE_HELD = "the field-of-view cut: the muscle's cut faces fixed as the chest wall beyond them"
 
 
 @register_effect
@@ -86,8 +94,7 @@ class CutFaces(Effect):
         """The cut held as by default (an on/off change), where the mesh has one."""
         if not (cls._cut(view, "muscle") or cls._cut(view, "breast")):
             return [Variant(cls.name, skip="the mesh has no field-of-view cut")]
-        return [Variant(cls.name, "the field-of-view cut: the muscle's cut faces fixed as the "
-                        "chest wall beyond them", {cls.name: {}})]
+        return [Variant(cls.name, _MUSCLE_HELD, {cls.name: {}})]
 
     @classmethod
     def option_variants(cls, key, table, view):
@@ -95,8 +102,7 @@ class CutFaces(Effect):
         breast's (along their plane's normal, the tissue beyond sliding along the cut)."""
         out = []
         if table.get("muscle", "fixed") != "fixed" and cls._cut(view, "muscle"):
-            out.append(Variant(f"{cls.name}:muscle", "the field-of-view cut: the muscle's cut "
-                               "faces fixed as the chest wall beyond them",
+            out.append(Variant(f"{cls.name}:muscle", _MUSCLE_HELD,
                                {key: {**table, "muscle": "fixed"}}, kind="option"))
         if table.get("breast", "free") == "free" and cls._cut(view, "breast"):
             out.append(Variant(f"{cls.name}:breast_normal", "the field-of-view cut: the "
@@ -113,12 +119,15 @@ class CutFaces(Effect):
         if self.options["muscle"] == "fixed":
             cut["breast"] = np.setdiff1d(cut["breast"], cut["muscle"])
         self._constraints = []
+        boundary = None  # made once, only where a cut is held along its normal
         for k, nodes in cut.items():
             how = self.options[k]
             if how == "fixed" and len(nodes):
                 self._constraints.append(Constraint(nodes, (0, 1, 2)))
             elif how == "normal" and len(nodes):
-                axis = _normal_axis(np.asarray(mesh.nodes, float), np.asarray(mesh.tets), nodes)
+                if boundary is None:
+                    boundary = _boundary(np.asarray(mesh.tets))
+                axis = _normal_axis(np.asarray(mesh.nodes, float), boundary, nodes)
                 self._constraints += [Constraint(nodes[axis == i], (i,)) for i in range(3)
                                       if (axis == i).any()]
 
