@@ -48,7 +48,7 @@ _HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != _HERE]
 
 from breastmodel.config import write_json  # noqa: E402
-from breastmodel.diagnosis import load_run, rank_candidates  # noqa: E402
+from breastmodel.diagnosis import answer, load_run, rank_candidates  # noqa: E402
 from breastmodel.diagnosis.missing import RIM_MM  # noqa: E402
 from breastmodel.phantom.mounds import mound_problem  # noqa: E402
 from breastmodel.pipeline.config import resolve_config  # noqa: E402
@@ -241,18 +241,18 @@ def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float = RIM_MM
     cpu1 = os.times()
     wall = time.perf_counter() - t0
     names = [r["name"] for r in d["ranking"]]
-    sig = [r for r in d["ranking"] if r["significant"]]
-    answer = sig[0]["name"] if sig else "none"
+    best = answer(d["ranking"])
+    named = best["name"] if best else "none"
     truth = next((r for r in d["ranking"] if matches(r["name"], case.label)), None)
     worst = max(d["baseline"]["mhd_mm"].values())
-    ver = (sig[0].get("verified") or {}) if sig else {}
+    ver = (best.get("verified") or {}) if best else {}
     # held-out check: the truth against the best wrong candidate of the same parameter count
     wrong = next((r for r in d["ranking"] if truth and not matches(r["name"], case.label)
                   and r["n_parameters"] == truth["n_parameters"] and r.get("held_out")), None)
     return {
-        "label": case.label, "tag": case.tag, "answer": answer, "rim_mm": d["rim_mm"],
+        "label": case.label, "tag": case.tag, "answer": named, "rim_mm": d["rim_mm"],
         "strength": "weak" if case.weak else "visible",
-        "correct": matches(answer, case.label) or (case.weak and answer == "none"),
+        "correct": matches(named, case.label) or (case.weak and named == "none"),
         "rank": names.index(truth["name"]) + 1 if truth else None,
         "top3": names[:3], "explained": truth["explained"] if truth else None,
         "delta_bic": truth["delta_bic"] if truth else None,

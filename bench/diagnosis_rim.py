@@ -39,13 +39,13 @@ def _row(r: dict) -> dict:
 
 def diagnose_at(run: Path, work: Path, rim_mm: float, watch: str) -> dict:
     """The diagnosis of ``run`` with a rim of ``rim_mm``: answer, verdict, the watched rows."""
-    from breastmodel.diagnosis import load_run, rank_candidates
+    from breastmodel.diagnosis import answer, load_run, rank_candidates
 
     d = rank_candidates(load_run(run), progress=False, verify_top=0, work_dir=work,
                         rim_mm=rim_mm)
-    sig = [r for r in d["ranking"] if r["significant"]]
-    return {"rim_mm": rim_mm, "answer": sig[0]["name"] if sig else "none",
-            "answer_explained": round(sig[0]["explained"], 3) if sig else None,
+    best = answer(d["ranking"])
+    return {"rim_mm": rim_mm, "answer": best["name"] if best else "none",
+            "answer_explained": round(best["explained"], 3) if best else None,
             "residual_rms_mm": round(d["baseline"]["rms_mm"], 3),
             "verdict": d["verdict"], "ranking": [_row(r) for r in d["ranking"][:5]],
             "watched": [_row(r) for r in d["ranking"] if r["name"].startswith(watch)]}

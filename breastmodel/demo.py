@@ -127,8 +127,10 @@ def _named(diag: dict[str, Any], hidden: str, run0: Path) -> tuple[list[str], st
     """The ranked candidates' names, the best significant one and the hidden effect's rank
     (1-based; None when unranked). Raises when no candidate is significant."""
     names = [r["name"] for r in diag["ranking"]]
-    sig = [r for r in diag["ranking"] if r["significant"]]
-    named = sig[0]["name"] if sig else None
+    from breastmodel.diagnosis import answer
+
+    best = answer(diag["ranking"])
+    named = best["name"] if best else None
     rank = names.index(hidden) + 1 if hidden in names else None
     if named is None:
         raise RuntimeError(f"demo: the diagnosis found no significant missing effect "

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from breastmodel.diagnosis.scoring import answer
+
 __all__ = ["diagnose", "write_diagnosis_html"]
 
 
@@ -218,15 +220,15 @@ def _next_step(diag: Mapping[str, Any]) -> list:
     """What to do about the best significant candidate: correct the measurement, or add the
     effect and compare (none significant: nothing)."""
     miss = diag["missing"]
-    sig = [r for r in miss["ranking"] if r["significant"]]
-    if sig and sig[0].get("measurement"):
+    best = answer(miss["ranking"])
+    if best is not None and best.get("measurement"):
         return ["<h2>3. Correct the measurement</h2><p>"
                 f"{html.escape(miss['verdict'])}. The estimate: "
                 + html.escape(", ".join(f"{k.split('.', 1)[-1]} = {v:.2f}" for k, v in
-                                        sig[0]["estimate"].items())) + "</p>"]
-    if sig:
+                                        best["estimate"].items())) + "</p>"]
+    if best is not None:
         return ["<h2>3. Add it and watch the error fall</h2><pre>breastmodel run SUBJECT "
-                f"--config RUN.toml --out DIR2 --add-effect {html.escape(sig[0]['name'])}\n"
+                f"--config RUN.toml --out DIR2 --add-effect {html.escape(best['name'])}\n"
                 f"breastmodel compare {html.escape(str(diag['run']))} DIR2 --out "
                 "COMPARE</pre>"]
     return []

@@ -87,6 +87,7 @@ from breastmodel.diagnosis.residual import (
 from breastmodel.diagnosis.scoring import (
     SIGNIFICANT_FLOOR_FRACTION,
     SIGNIFICANT_MIN_MM,
+    answer,
     confounders,
     confounding_sentence,
     score_candidates,
@@ -306,9 +307,9 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
             rim_mm: float) -> dict:
     """The diagnosis' JSON-ready result (see :func:`rank_candidates`)."""
     base_mhd = ev.records["base"]["result"]["mhd_mm"]
-    sig = [r for r in ranking if r["significant"]]
-    if sig:
-        verdict = _verdict(sig[0], base.rms_base)
+    best = answer(ranking)
+    if best is not None:
+        verdict = _verdict(best, base.rms_base)
     else:
         worst = sorted(base.regions.items(), key=lambda kv: -kv[1])[:3]
         carriers = ", ".join(f"{k} ({v:.2f} mm)" for k, v in worst)

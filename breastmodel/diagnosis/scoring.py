@@ -43,6 +43,12 @@ SIGNIFICANT_BIC = 6.0
 #: tests it.
 
 
+def answer(ranking: Sequence[dict]) -> dict | None:
+    """The diagnosis' answer: the row of its first significant candidate, or None (the
+    answer "none": nothing explains more than the noise)."""
+    return next((r for r in ranking if r["significant"]), None)
+
+
 def score_candidates(candidates: Sequence[Candidate], lin: Linearisation, base: Baseline,
                       plan: Plan, geometry: dict) -> tuple[list, list, dict]:
     """Every candidate re-fitted by the linear model: the ranking (best first: the

@@ -131,12 +131,11 @@ DIAGNOSIS_CASES = {"none": {}, "misregistration:prone": {"prone": _rigid},
 def _answer(run_dir: Path, work: Path) -> tuple[str, dict, dict]:
     """The diagnosis' answer (its first significant candidate, else "none"), that
     candidate's row and the whole diagnosis."""
-    from breastmodel.diagnosis import load_run, rank_candidates
+    from breastmodel.diagnosis import answer, load_run, rank_candidates
 
     d = rank_candidates(load_run(run_dir), progress=False, verify_top=0, work_dir=work)
-    significant = [r for r in d["ranking"] if r["significant"]]
-    return (significant[0]["name"] if significant else "none",
-            significant[0] if significant else {}, d)
+    best = answer(d["ranking"])
+    return (best["name"] if best else "none", best or {}, d)
 
 
 @pytest.mark.parametrize("label", list(DIAGNOSIS_CASES))
