@@ -13,6 +13,7 @@ import SimpleITK as sitk
 from mri_synth import Slab, chest_points, euler, render, write_subject
 
 from imaging.preprocess import preprocess
+from registration.checks import fle_estimate
 from registration.qa import rotation_error_deg, target_registration_error
 from registration.rigid import (
     check_registration,
@@ -137,8 +138,36 @@ def test_check_flags_a_shift_beyond_the_localisation_error():
     assert min(bad["fiducial_shift_mm"].values()) == pytest.approx(1.5)
     # large fiducial residuals widen the localisation error the check allows
     loose = check_registration(moved, truth, fp, {k: 2.0 for k in fp}, chest_points=chest)
-    assert loose["fle_mm"] == pytest.approx(2.0 / np.sqrt(0.5))
+    assert loose["fle_mm"] == pytest.approx(fle_estimate(2.0, 4))
+    assert loose["fle_mm"] == pytest.approx(2.0 * np.sqrt(2.0))
     assert loose["passed"]
+
+
+def _kabsch_residual(a: np.ndarray, b: np.ndarray) -> float:
+    """RMS residual of the best rigid fit of points ``a`` onto ``b``."""
+    a0, b0 = a - a.mean(axis=0), b - b.mean(axis=0)
+    u, _, vt = np.linalg.svd(a0.T @ b0)
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    return float(np.sqrt(((a0 @ (u @ d @ vt) - b0) ** 2).sum(axis=1).mean()))
+
+
+@pytest.mark.parametrize("n", [3, 4, 6])
+def test_the_localisation_error_comes_back_from_the_fits_residuals(n):
+    # markers localised with a known error in both images (0.7 mm RMS in all): over many
+    # draws the estimate from each fit's residual gives it back, squared and averaged (the
+    # residual alone is smaller: the fit absorbs six freedoms of the error)
+    rng = np.random.default_rng(n)
+    fle = 0.7
+    sigma = fle / np.sqrt(6.0)  # per axis and image: FLE is the 3-D RMS of both together
+    fre = []
+    for _ in range(3000):
+        f = rng.normal(0, 60, (n, 3))
+        moving = transform_points(euler((5.0, -3.0, 8.0), (2.0, 1.0, -4.0)), f)
+        fre.append(_kabsch_residual(f + rng.normal(0, sigma, f.shape),
+                                    moving + rng.normal(0, sigma, f.shape)))
+    est = np.array([fle_estimate(r, n) for r in fre])
+    assert np.sqrt(np.mean(est ** 2)) == pytest.approx(fle, rel=0.03)
+    assert np.sqrt(np.mean(np.square(fre))) < 0.85 * fle
 
 
 def test_predicted_tre_grows_away_from_the_fiducials():
