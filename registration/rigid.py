@@ -117,7 +117,7 @@ def register_rigid(
         every other direction stays the chest wall's (:func:`_set_loose`).
     fiducial_error_mm : float
         Fiducial localisation error (FLE) assumed at least, mm; the check allows more where
-        the fiducial fit's residuals bound it higher (:func:`check_registration`).
+        the fiducial fit's residuals imply it higher (:func:`check_registration`).
     shrink, smooth_mm, iterations, sampling, learning_rate_mm, seed, threads
         Multi-resolution schedule (shrink factors, Gaussian sigmas in mm), optimiser
         iterations per level, fraction of mask voxels sampled, first step (mm), the sampling
