@@ -56,8 +56,9 @@ def cut_warning(cut: dict[str, dict[str, float]], reference: str) -> str | None:
     parts = [f"the {s} breast over {c['cut_mm2']:.0f} mm^2 ({100 * c['share']:.0f} % of its "
              "skin area)" for s, c in over.items()]
     return (f"field of view: the reference scan ({reference}) cuts " + " and ".join(parts)
-            + "; the model ends there while the body goes on (the default model holds the "
-              "muscle's cut, cut_faces), so within about 15 mm of the cut its predicted skin "
+            + "; the model ends there while the body goes on (a model with the effect "
+              "cut_faces holds the muscle's cut there, as the default one does), so within "
+              "about 15 mm of the cut its predicted skin "
               "is less sure than elsewhere (on the validation suite 0.6-1.0 mm from the truth "
               "on average against 0.2-0.3 mm): judge the fit by the MHD over the skin both "
               "surfaces show (mhd_overlap_mm), or scan the reference with a wider field of "
