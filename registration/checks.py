@@ -86,11 +86,10 @@ def check_registration(
       times the error expected of the fiducial-only fit there (:func:`predicted_tre`).
 
     The FLE is ``fiducial_error_mm`` or the one the fiducial fit's residuals imply
-    (:func:`fle_estimate`), whichever is larger. (The markers are localised by a sub-voxel fit,
-    :func:`imaging.fiducials.localise_marker`: their residuals, not the voxel, tell how well;
-    a floor of half a voxel's diagonal, 1.73 mm for 2 mm voxels, let small-002's tilted
-    refinement move every marker 1.28-1.48 mm from a fiducial solution of 0.40 mm TRE (max on
-    the chest wall) unflagged; its refined one's was 1.88 mm.)
+    (:func:`fle_estimate`), whichever is larger: markers are fitted to sub-voxel accuracy
+    (:func:`imaging.fiducials.localise_marker`), so their residuals, not the voxel, tell how
+    well (half a 2 mm voxel's diagonal, 1.73 mm, let small-002's tilted refinement, 1.88 mm
+    max TRE, move every marker 1.28-1.48 mm from the markers' fit, 0.40 mm, unflagged).
 
     Parameters
     ----------
