@@ -299,8 +299,6 @@ def test_the_fiducials_replace_a_refinement_that_slid_not_one_a_marker_bent(how)
     does to the fiducial fit: the refined one is kept, flagged, and the marker named."""
     from registration.rigid import _checked
 
-    image = sitk.Image(4, 4, 4, sitk.sitkFloat32)
-    image.SetSpacing((0.5, 0.5, 0.5))
     fp = {"a": np.array([0.0, 0, 0]), "b": np.array([100.0, 0, 0]),
           "c": np.array([50.0, 10, 0]), "d": np.array([50.0, 100, 0])}
     fid = euler((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
@@ -308,7 +306,7 @@ def test_the_fiducials_replace_a_refinement_that_slid_not_one_a_marker_bent(how)
     refined = (euler((0.0, 0.0, 0.0), (2.0, 0.0, 0.0)) if how == "slid" else
                euler((np.degrees(0.02), 0.0, 0.0), (0.0, 0.0, 0.0), center=(0.0, 0.0, 0.0)))
     notes: list[str] = []
-    used, checks, status = _checked(image, image, refined, fid, tuple(fp), fp, mp, notes,
+    used, checks, status = _checked(refined, fid, tuple(fp), fp, mp, notes,
                                     chest=None, fiducial_error_mm=1.0, fallback=True)
     assert not checks["passed"]
     if how == "slid":
