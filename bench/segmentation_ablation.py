@@ -18,7 +18,14 @@ Rows per subject (the reference's label map the mesh is built from):
 - ``truth + outline``: the truth with the pipeline's body outline (every voxel that is air in
   one of the two and tissue in the other takes the pipeline's label), and split:
   ``truth + muscle outline`` (those where either says muscle: the muscle's back and front
-  where it meets air) and ``truth + breast outline`` (the others: the skin over the breast).
+  where it meets air) and ``truth + breast outline`` (the others: the skin over the breast);
+- ``truth + cut faces``: the truth with the pipeline's labels on the label map's six
+  field-of-view faces (the one-voxel layers a scan cut the body at, where an active contour
+  meets the image's edge);
+- ``truth + muscle to breast``: the truth with the voxels the truth calls muscle and the
+  pipeline breast tissue given to the breast (the spill's reverse).
+
+``--rows`` runs a subset (the ``truth`` row is always run: the others are read against it).
 
 Prints the fitted modulus of each row (and its change from the ``truth`` row), the spill's
 size and the mean offset of the pipeline's breast-muscle interface from the truth's (face
@@ -96,16 +103,24 @@ def variants(truth: np.ndarray, own: np.ndarray, tissue: np.ndarray) -> dict[str
     out["pipeline - spill"] = a
     outline = (truth == 0) != (own == 0)
     by_muscle = outline & ((truth == 2) | (own == 2))
+    faces = np.zeros(truth.shape, bool)
+    for ax in range(3):
+        ends = [slice(None)] * 3
+        ends[ax] = [0, -1]
+        faces[tuple(ends)] = True
     for name, part in [("truth + outline", outline), ("truth + muscle outline", by_muscle),
-                       ("truth + breast outline", outline & ~by_muscle)]:
+                       ("truth + breast outline", outline & ~by_muscle),
+                       ("truth + cut faces", faces & (truth != own)),
+                       ("truth + muscle to breast", (truth == 2) & np.isin(own, (1, 3)))]:
         a = truth.copy()
         a[part] = own[part]
         out[name] = a
     return out
 
 
-def ablate(work: Path, name: str, out: Path) -> dict:
-    """The rows of one subject of a validation work folder (its pipeline arm run first)."""
+def ablate(work: Path, name: str, out: Path, rows: list[str] | None = None) -> dict:
+    """The rows of one subject of a validation work folder (its pipeline arm run first);
+    ``rows``: a subset of :func:`variants`' names (None: all)."""
     import SimpleITK as sitk
 
     from breastmodel.pipeline.run import run_subject
@@ -130,7 +145,14 @@ def ablate(work: Path, name: str, out: Path) -> dict:
            "interface_offset_mm": _interface_offset_mm(truth, own, img.GetSpacing()[::-1]),
            "truth_E": truth_breast_E(truth_dir).get("left"),
            "rows": {}}
-    for row, labels in variants(truth, own, tissue).items():
+    maps = variants(truth, own, tissue)
+    unknown = sorted(set(rows or ()) - set(maps))
+    if unknown:
+        raise SystemExit(f"segmentation_ablation: unknown rows {unknown}; known {list(maps)}")
+    res["changed_voxels"] = {row: int((m != truth).sum()) for row, m in maps.items()}
+    for row, labels in maps.items():
+        if rows and row != "truth" and row not in rows:
+            continue
         d = out / name / row.replace(" ", "_").replace("+", "plus").replace("-", "minus")
         (d / "labels").mkdir(parents=True, exist_ok=True)
         for pos in positions:
@@ -153,13 +175,16 @@ def main(argv=None) -> int:
     ap.add_argument("--work", type=Path, required=True, help="a bench/validate.py work folder")
     ap.add_argument("--subjects", required=True, help="comma-separated, e.g. small-004")
     ap.add_argument("--out", type=Path, default=None, help="default WORK/ablation")
+    ap.add_argument("--rows", default=None,
+                    help="comma-separated row names (default: all), e.g. 'pipeline,truth + spill'")
     ap.add_argument("--json", type=Path,
                     default=ROOT / "bench" / "results" / "segmentation_ablation.json")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     os.environ.setdefault("OMP_NUM_THREADS", "2")
     out = args.out or args.work / "ablation"
-    results = [ablate(args.work, n, out) for n in args.subjects.split(",")]
+    rows = args.rows.split(",") if args.rows else None
+    results = [ablate(args.work, n, out, rows) for n in args.subjects.split(",")]
     print("| reference label map | " + " | ".join(r["subject"] for r in results) + " |")
     print("|---|" + "---|" * len(results))
     print("| spill voxels (skin) | " + " | ".join(
@@ -168,8 +193,8 @@ def main(argv=None) -> int:
         f"{r['interface_offset_mm']:+.2f}" for r in results) + " |")
     print("| truth E kPa | " + " | ".join(f"{r['truth_E']}" for r in results) + " |")
     for row in results[0]["rows"]:
-        cells = [f"{r['rows'][row]:.3f} ({100 * (r['rows'][row] / r['rows']['truth'] - 1):+.1f} %)"
-                 for r in results]
+        cells = [f"{r['rows'][row]:.3f} ({100 * (r['rows'][row] / r['rows']['truth'] - 1):+.1f} %"
+                 f", {r['changed_voxels'][row]} voxels)" for r in results]
         print(f"| fit with {row} | " + " | ".join(cells) + " |")
     args.json.parent.mkdir(parents=True, exist_ok=True)
     from breastmodel.config import write_json
