@@ -145,8 +145,11 @@ def _deep_dark_thorax(a, sp, body, *, min_region_mm3, name):
     t_mid = thresholds[0]
     for t in thresholds:
         # one erosion cuts the one-voxel bridges that noise and partial volume open through
-        # the muscle; the dark regions grow back by one voxel once classified
-        dlab, dn = _components(ndimage.binary_erosion(body & (a < t)))
+        # the muscle; the dark regions grow back by one voxel once classified. Past the
+        # field of view the tissue goes on: with the outside as background the face's
+        # thorax was eroded away, and where the scan cuts the chest (small-soft-000's coil
+        # box) a 1-2 voxel layer between muscle and thorax went to the breast (385 voxels)
+        dlab, dn = _components(ndimage.binary_erosion(body & (a < t), border_value=1))
         if dn == 0:
             continue
         dsizes = np.bincount(dlab.ravel(), minlength=dn + 1)
