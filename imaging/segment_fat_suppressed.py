@@ -148,7 +148,8 @@ def _deep_dark_thorax(a, sp, body, *, min_region_mm3, name):
         # the muscle; the dark regions grow back by one voxel once classified. Past the
         # field of view the tissue goes on: with the outside as background the face's
         # thorax was eroded away, and where the scan cuts the chest (small-soft-000's coil
-        # box) a 1-2 voxel layer between muscle and thorax went to the breast (385 voxels)
+        # box) a 2-3 voxel layer between muscle and thorax went to the breast (381 voxels
+        # on its posterior face)
         dlab, dn = _components(ndimage.binary_erosion(body & (a < t), border_value=1))
         if dn == 0:
             continue

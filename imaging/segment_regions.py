@@ -105,8 +105,9 @@ def _opening_beyond_edge(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
     """Binary opening of ``mask`` as if it went on past the field of view unchanged (edge
     padding): where a scan cuts through the chest wall its face is no edge of the layer. An
     opening with the outside as background thinned the muscle's start on the cut face by
-    the ball's radius, and its active contour did not win it back (a torso phantom cut
-    through the thorax: 597 muscle voxels of the face called breast)."""
+    the ball's radius, and its active contour did not win it back (the T1 fat-suppressed
+    phantom cut through its thorax: 597 muscle voxels of the face called breast, 296 with
+    the padding)."""
     pad = [(h, h) for h in (np.asarray(structure.shape) // 2)]
     opened = ndimage.binary_opening(np.pad(mask, pad, mode="edge"), structure=structure)
     return opened[tuple(slice(h, h + n) for (h, _), n in zip(pad, mask.shape))]
