@@ -19,6 +19,7 @@ back; truths and pipeline stages are cached too).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -57,6 +58,9 @@ def main(argv=None) -> int:
                          "to rerun stages after a code change)")
     ap.add_argument("--markdown", action="store_true", help="print the table as markdown")
     ap.add_argument("--progress", action="store_true")
+    ap.add_argument("--register", default="{}",
+                    help='JSON: [register] keys over the run\'s defaults, e.g. '
+                         '\'{"require_fiducials": false}\'')
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     os.environ.setdefault("OMP_NUM_THREADS", "2")
@@ -69,6 +73,7 @@ def main(argv=None) -> int:
     except (FileNotFoundError, ValueError) as exc:
         print(f"validate: {exc}", file=sys.stderr)
         return 2
+    register = json.loads(args.register)
     seeds = ([int(s) for s in args.seeds.split(",")] if args.seeds
              else list(range(args.subjects)))
     tag = "" if args.band == "standard" else f"{args.band}-"
@@ -82,7 +87,7 @@ def main(argv=None) -> int:
 
     results = run_suite(names, make, args.work, arms=args.arms.split(","),
                         mesh_size_mm=args.mesh_size, force=args.force, progress=args.progress,
-                        on_result=show)
+                        on_result=show, register=register)
     print()
     print(format_table(results, markdown=args.markdown))
     met = [t for r in results for t in r.get("targets", [])]
@@ -98,6 +103,7 @@ def main(argv=None) -> int:
 
     args.json.parent.mkdir(parents=True, exist_ok=True)
     write_json(args.json, {"size": args.size, "band": args.band, "seeds": seeds,
+                           "register": register,
                            "wall_s": time.perf_counter() - t0,
                            "targets": summary, "subjects": results})
     print(f"\nwrote {args.json}")

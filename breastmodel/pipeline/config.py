@@ -115,6 +115,7 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     cfg = _merge(DEFAULTS, raw)
     check_model(cfg["model"], where=where)
     _check_given_labels(cfg["segment"], where)
+    _check_register(cfg["register"], where)
     sf = cfg["stress_free"]
     if sf["method"] not in ("inverse", "paper", "none"):
         raise ConfigError(f"{where} [stress_free] method must be 'inverse', 'paper' or "
@@ -148,6 +149,16 @@ def resolve_config(raw: Mapping[str, Any] | None = None, *, where: str = "run co
     if fit["enabled"] and not fit["parameters"]:
         raise ConfigError(f"{where} [fit] enabled = true needs [fit.parameters]")
     return cfg
+
+
+def _check_register(table: Mapping, where: str) -> None:
+    """The ``[register]`` table checked as the stage will, before any stage runs."""
+    from breastmodel.pipeline.register import read_config
+
+    try:
+        read_config(table)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def _check_given_labels(seg: Mapping[str, Any], where: str) -> None:

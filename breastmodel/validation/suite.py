@@ -33,7 +33,8 @@ def split_positions(positions: Sequence[str], reference: str) -> tuple[list[str]
 def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], reference: str,
                  *, mesh_size_mm: float | str = "auto", E_start: float = 1.0,
                  E_muscle: float = 10.0,
-                 effects: Mapping[str, Mapping[str, Any] | None] | None = None) -> dict:
+                 effects: Mapping[str, Mapping[str, Any] | None] | None = None,
+                 register: Mapping[str, Any] | None = None) -> dict:
     """The resolved run config of one arm: the bulk model (Neo-Hookean breast and muscle,
     posterior chest wall fixed, and where the scan cut it: ``cut_faces``), least-squares fit
     of one breast modulus on the calibration positions, every position predicted.
@@ -48,6 +49,7 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
     E_muscle : muscle modulus, kPa (held fixed)
     effects : effect key -> table replacing the bulk model's, or None leaving it out (a
         study's variant of the model, e.g. ``bench/cut_faces.py``)
+    register : ``[register]`` keys over the run's defaults (e.g. ``require_fiducials``)
     """
     from breastmodel.pipeline.config import resolve_config
 
@@ -70,6 +72,8 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
             raw["model"]["effects"].pop(key, None)
         else:
             raw["model"]["effects"][key] = dict(table)
+    if register:
+        raw["register"] = dict(register)
     if arm == "truth_labels":
         raw["segment"] = {"labels": str(Path(truth_dir).resolve())}
     elif arm == "reference_truth":
@@ -80,9 +84,11 @@ def suite_config(arm: str, truth_dir: str | Path, positions: Sequence[str], refe
 
 def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm: str, *,
             mesh_size_mm: float | str = "auto", progress: bool = False,
-            effects: Mapping[str, Mapping[str, Any] | None] | None = None) -> dict[str, Any]:
+            effects: Mapping[str, Mapping[str, Any] | None] | None = None,
+            register: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Run one arm of one subject and collect its figures; a failing stage is recorded.
-    ``effects`` changes the bulk model (see :func:`suite_config`).
+    ``effects`` changes the bulk model, ``register`` the registration's keys (see
+    :func:`suite_config`).
 
     Returns
     -------
@@ -103,7 +109,7 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
     positions, reference = list(subject.positions), subject.reference
     calibrate, held_out = split_positions(positions, reference)
     cfg = suite_config(arm, truth_dir, positions, reference, mesh_size_mm=mesh_size_mm,
-                       effects=effects)
+                       effects=effects, register=register)
     t0 = time.perf_counter()
     error = failed = None
     try:
@@ -142,13 +148,15 @@ def run_arm(subject_dir: str | Path, truth_dir: str | Path, out: str | Path, arm
 
 def evaluate_subject(subject_dir: str | Path, truth_dir: str | Path, work_dir: str | Path, *,
                      arms: Iterable[str] = ARMS, mesh_size_mm: float | str = "auto",
-                     progress: bool = False) -> dict[str, Any]:
+                     progress: bool = False,
+                     register: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Every arm of one subject (see :func:`run_arm`), keyed by arm, with the targets."""
     work_dir = Path(work_dir)
     out = {"subject": Path(subject_dir).name, "arms": {}}
     for arm in arms:
         out["arms"][arm] = run_arm(subject_dir, truth_dir, work_dir / arm, arm,
-                                   mesh_size_mm=mesh_size_mm, progress=progress)
+                                   mesh_size_mm=mesh_size_mm, progress=progress,
+                                   register=register)
     out["targets"] = check_targets(out)
     return out
 
@@ -156,7 +164,8 @@ def evaluate_subject(subject_dir: str | Path, truth_dir: str | Path, work_dir: s
 def run_suite(names: Sequence[str], make: Callable[[str, Path], tuple[Path, Path, dict]],
               work: str | Path, *, arms: Iterable[str] = ARMS, mesh_size_mm: float | str = "auto",
               force: bool = False, progress: bool = False,
-              on_result: Callable[[dict], None] | None = None) -> list[dict[str, Any]]:
+              on_result: Callable[[dict], None] | None = None,
+              register: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
     """Make and evaluate each subject; each result is written atomically to
     ``work/results/<name>.json`` and a rerun skips the finished ones (``force``: redo).
 
@@ -167,6 +176,7 @@ def run_suite(names: Sequence[str], make: Callable[[str, Path], tuple[Path, Path
         subject; ``info`` (its description and the time it took) goes into the result. An
         exception is recorded as the subject's error.
     work : the suite's folder
+    register : ``[register]`` keys over the run's defaults, every subject and arm
     """
     from breastmodel.config import write_json
 
@@ -188,7 +198,8 @@ def run_suite(names: Sequence[str], make: Callable[[str, Path], tuple[Path, Path
         else:
             make_s = round(time.perf_counter() - t0, 2)
             res = evaluate_subject(subject_dir, truth_dir, work / "runs" / name, arms=arms,
-                                   mesh_size_mm=mesh_size_mm, progress=progress)
+                                   mesh_size_mm=mesh_size_mm, progress=progress,
+                                   register=register)
             res.update(subject=name, info=info, make_s=make_s)
         write_json(path, res)
         results.append(res)

@@ -46,6 +46,13 @@ def test_suite_config_arms(tmp_path):
     free = suite_config("truth_labels", tmp_path, ["prone", "supine"], "supine",
                         effects={"cut_faces": None, "tied": {}})
     assert set(free["model"]["effects"]) == {"fixed", "tied"}  # a study's variant
+    assert cfg["register"]["require_fiducials"] is True  # the run's default
+    lax = suite_config("pipeline", tmp_path, ["prone", "supine"], "supine",
+                       register={"require_fiducials": False})
+    assert lax["register"]["require_fiducials"] is False
+    with pytest.raises(ValueError, match="register"):
+        suite_config("pipeline", tmp_path, ["prone", "supine"], "supine",
+                     register={"require_fiducials": "no"})
 
 
 def test_targets_verdicts():
