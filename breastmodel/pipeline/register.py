@@ -182,7 +182,9 @@ def _stop(name: str, res, report_path: Path) -> None:
     why = "; ".join(res.warnings) or res.status
     raise StageError("register", f"position {name!r}: the registration is "
                      f"{res.status} ({why}); with require_fiducials = true it must "
-                     "agree with the fiducials", report_path)
+                     "agree with the fiducials (check the overlays in the report; "
+                     "[register] require_fiducials = false accepts the kept transform)",
+                     report_path)
 
 
 

@@ -29,7 +29,13 @@ POSITIONS = ("prone", "supine", "supine_tilted")
 def _config(truth: Path, **model) -> dict:
     raw = {
         "segment": {"labels": str(truth)},
-        "register": {"shrink": [2, 1], "smooth_mm": [2.0, 0.0], "iterations": 30},
+        # This phantom loses a marker to detection; on the three left the tilted position's
+        # refinement moves them 0.84-1.31 mm (localisation error 1.0 mm), no more on the
+        # chest wall than the fiducials' own expected error there (2.49 mm mean): kept,
+        # flagged (truth TRE 0.72 mm mean, the fiducials' 1.77 mm), so require_fiducials
+        # (tested on its own below) would stop these runs.
+        "register": {"shrink": [2, 1], "smooth_mm": [2.0, 0.0], "iterations": 30,
+                     "require_fiducials": False},
         "mesh": {"size_mm": 12.0},
         "surface": {"edge_mm": 4.0},
         "stress_free": {"tol_mm": 0.2, "max_iter": 10},
@@ -255,7 +261,8 @@ def _copy_subject(src: Path, dst: Path) -> Path:
 def test_missing_fiducials_fail_at_register(phantom, tmp_path):
     subj = _copy_subject(phantom, tmp_path / "s")
     (subj / "fiducials.csv").unlink()
-    cfg = resolve_config(_config(Path(str(phantom) + "_truth")))
+    raw = _config(Path(str(phantom) + "_truth"))
+    cfg = resolve_config({**raw, "register": {**raw["register"], "require_fiducials": True}})
     with pytest.raises(StageError, match=r"^register.*fiducials"):
         run_subject(subj, cfg, tmp_path / "out", progress=False)
 
@@ -352,6 +359,7 @@ def test_given_labels_for_some_positions_the_others_segmented(phantom, tmp_path)
     ({"segment": {"labels_positions": ["supine"]}}, "needs labels"),
     ({"segment": {"labels": "x", "labels_positions": "supine"}}, "list of position names"),
     ({"segment": {"labels": "x", "labels_positions": []}}, "list of position names"),
+    ({"register": {"require_fiducials": "yes"}}, r"\[register\] require_fiducials must be"),
 ])
 def test_bad_config_is_rejected(raw, match):
     with pytest.raises(ConfigError, match=match):
