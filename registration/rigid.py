@@ -126,8 +126,10 @@ def register_rigid(
         How many of the finest levels of at most :data:`MAX_VOXEL_MM` the masked chest-wall
         refinement runs (its start is close; a coarse level's optimum pulls along loose ones).
     fiducial_fallback : bool
-        When the refined transform fails a check by moving every marker alike, return the
-        fiducial-only solution (status ``"fiducials"``, :func:`_checked`).
+        When the refined transform fails a check by moving every marker alike, and differs
+        from the fiducial-only solution on the chest wall by more than that solution's
+        expected error there, return the fiducial-only solution (status ``"fiducials"``,
+        :func:`_checked`).
     base_mask : SimpleITK.Image, optional
         The wall and the breasts' base: sets loose directions without markers (see above).
 
