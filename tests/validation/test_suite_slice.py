@@ -185,8 +185,13 @@ def test_the_diagnosis_names_a_hidden_asymmetry_on_febio_truth(slice_work, tmp_p
     subject, truth, _ = make("small-003", slice_work / "asymmetric" / "small-003")
     sub = read_subject(subject)
     run_dir = tmp_path / "run"
+    # Its tilted registration moves the markers past their localisation error (1.08 mm) but
+    # differs from the markers' fit on the chest wall by less than that fit's own expected
+    # error (0.94 against 1.03 mm): kept, flagged (truth TRE 0.46/0.53 mm mean/max, the
+    # markers' 1.29/1.68), and require_fiducials, the run's default, would stop there.
     run_subject(subject, suite_config("truth_labels", truth, list(sub.positions),
-                                      sub.reference), run_dir, progress=False)
+                                      sub.reference, register={"require_fiducials": False}),
+                run_dir, progress=False)
     answer, first, d = _answer(run_dir, tmp_path / "evaluations")
     print(f"regions:asymmetry: {answer} {first.get('estimate')}; {d['verdict']}")
     assert answer == "regions:asymmetry", d["verdict"]
