@@ -126,10 +126,9 @@ def register_rigid(
         How many of the finest levels of at most :data:`MAX_VOXEL_MM` the masked chest-wall
         refinement runs (its start is close; a coarse level's optimum pulls along loose ones).
     fiducial_fallback : bool
-        When the refined transform fails a check by moving every marker alike, and differs
-        from the fiducial-only solution on the chest wall by more than that solution's
-        expected error there, return the fiducial-only solution (status ``"fiducials"``,
-        :func:`_checked`).
+        When the refined transform fails a check by moving every marker alike and differs
+        from the fiducial-only one on the chest wall by more than that one's expected error
+        there, return the fiducial-only one (status ``"fiducials"``, :func:`_checked`).
     base_mask : SimpleITK.Image, optional
         The wall and the breasts' base: sets loose directions without markers (see above).
 
@@ -157,9 +156,8 @@ def register_rigid(
         tfm = _set_loose(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
                          balls=[fixed_points[k] for k in pinned], radius_mm=marker_mask_mm,
                          base=base_mask)
-    chosen, checks, status = _checked(tfm, fid, used, fixed_points,
-                                      moving_points, notes, chest=fixed_mask,
-                                      fiducial_error_mm=fiducial_error_mm,
+    chosen, checks, status = _checked(tfm, fid, used, fixed_points, moving_points, notes,
+                                      chest=fixed_mask, fiducial_error_mm=fiducial_error_mm,
                                       fallback=fiducial_fallback)
     res = fiducial_residuals(chosen, fixed_points or {}, moving_points or {})
     return RigidResult(chosen, how, res, used, metric, tuple(notes), status=status,
