@@ -13,7 +13,7 @@ import SimpleITK as sitk
 from mri_synth import Slab, chest_points, euler, render, write_subject
 
 from imaging.preprocess import preprocess
-from registration.checks import fle_estimate
+from registration.checks import fle_estimate, wall_difference_null
 from registration.qa import rotation_error_deg, target_registration_error
 from registration.rigid import (
     check_registration,
@@ -177,6 +177,29 @@ def test_predicted_tre_grows_away_from_the_fiducials():
     assert far > 4 * near
 
 
+def test_the_walls_null_spread_matches_the_predicted_error_and_is_seeded():
+    """At one target the draws' RMS is the Fitzpatrick-West TRE there; over a wall the mean
+    magnitude sits below the points' RMS (Gaussian magnitudes, about 0.9 of it), the spread
+    scales with the localisation error and the same seed gives the same draws."""
+    f = np.array([[-60.0, 0, 40], [60, 0, 40], [0, -50, 20], [0, 60, 30]])
+    for target in ([0.0, 0, 0], [20.0, -30, -60]):
+        one = wall_difference_null(np.array([target]), f, 1.5, samples=8000, seed=3)
+        assert np.sqrt(np.mean(one ** 2)) == pytest.approx(
+            predicted_tre(np.array([target]), f, 1.5)[0], rel=0.03)
+    wall = np.random.default_rng(1).uniform([-80, -80, -10], [80, 80, 0], size=(3000, 3))
+    draws = wall_difference_null(wall, f, 1.0, samples=4000, seed=3)
+    e = predicted_tre(wall, f, 1.0).mean()
+    assert 0.8 * e < draws.mean() < 0.95 * e
+    assert np.quantile(draws, 0.9) > 1.15 * draws.mean()
+    twice = wall_difference_null(wall, f, 2.0, samples=4000, seed=3)
+    # the same draws, twice as large: a fit's rotation of a few mrad is all but linear in
+    # the errors (each draw within 2.3 % of twice its own, their mean within 0.1 %)
+    np.testing.assert_allclose(twice, 2.0 * draws, rtol=0.03)
+    assert twice.mean() == pytest.approx(2.0 * draws.mean(), rel=2e-3)
+    np.testing.assert_array_equal(draws, wall_difference_null(wall, f, 1.0, samples=4000,
+                                                              seed=3))
+
+
 def test_same_input_gives_the_same_transform_bit_for_bit(tilted, tmp_path):
     fixed, moving, labels, truth, fp, mp = tilted
     files = []
@@ -319,15 +342,18 @@ def test_the_fiducials_replace_a_refinement_that_slid_not_one_a_marker_bent(how)
         assert any("mostly at 'd'" in n and "kept" in n for n in notes)
 
 
-@pytest.mark.parametrize("wall", ["near", "far"])
+@pytest.mark.parametrize("wall", ["near", "between", "far"])
 def test_a_slide_within_the_fiducials_own_error_on_the_wall_keeps_the_refined_one(wall):
     """Every marker moved alike by 1.5 mm, past the 1 mm localisation error: flagged either
-    way. On a chest wall near the markers the fiducial-only fit's expected error (about
-    0.5-0.7 mm there) is less than the 1.5 mm the two differ by: the refinement slid, the
-    fiducials replace it. On a wall 200 mm off the markers' plane that expected error is
-    larger than 1.5 mm, so the disagreement says nothing against the refined transform and
-    it is kept, flagged, with a note. (The validation suite's soft torso small-soft-003
-    tilted: 1.62 mm against 1.74 expected, refined max TRE 0.93 mm, the fiducials' 2.94.)"""
+    way. On a chest wall near the markers a fiducial-only fit lands within 0.72 mm of a
+    right one 9 times in 10 (its expected error about 0.5 mm there): 1.5 mm says the
+    refinement slid, the fiducials replace it. On a wall 100 mm off the markers' plane the
+    expected error is 1.19 mm, less than the 1.5 mm the two differ by, but the fit's rigid
+    error spreads its wall mean to 1.81 mm at the 90th percentile; 200 mm off, 2.2 and 3.3
+    mm: the disagreement says nothing against the refined transform, which is kept, flagged,
+    with a note. (The pipeline phantom tilted with the default schedule: 2.54 mm against
+    2.49 expected and 3.85 at the 90th percentile, refined TRE 0.79 mm, the fiducials'
+    3.78; small-002 tilted: 1.23 against 0.90 and 1.13, fiducials 0.25, refined 1.49.)"""
     from registration.rigid import _checked
 
     fp = {"a": np.array([0.0, 0, 0]), "b": np.array([100.0, 0, 0]),
@@ -336,17 +362,19 @@ def test_a_slide_within_the_fiducials_own_error_on_the_wall_keeps_the_refined_on
     mp = {k: transform_points(fid, v)[0] for k, v in fp.items()}
     refined = euler((0.0, 0.0, 0.0), (1.5, 0.0, 0.0))
     chest = sitk.Image(20, 20, 3, sitk.sitkUInt8) + 1
-    chest.SetOrigin((40.0, 20.0, 0.0 if wall == "near" else 200.0))
+    chest.SetOrigin((40.0, 20.0, {"near": 0.0, "between": 100.0, "far": 200.0}[wall]))
     notes: list[str] = []
     used, checks, status = _checked(refined, fid, tuple(fp), fp, mp, notes,
                                     chest=chest, fiducial_error_mm=1.0, fallback=True)
     assert not checks["passed"]
     assert checks["chest_wall_shift_mm"]["mean"] == pytest.approx(1.5)
     expected = checks["expected_tre_mm"]["mean"]
+    p90 = checks["chest_wall_null_mm"]["p90"]
     if wall == "near":
-        assert expected < 1.0
+        assert expected < 1.0 and p90 < 1.0
         assert status == "fiducials" and used is fid
     else:
-        assert expected > 1.5
+        assert (expected < 1.5) if wall == "between" else (expected > 1.5)
+        assert p90 > 1.7
         assert status == "flagged" and used is refined
-        assert any("no more than the fiducials' own expected error" in n for n in notes)
+        assert any("9 times in 10" in n and "is kept" in n for n in notes)
