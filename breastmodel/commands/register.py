@@ -37,8 +37,8 @@ transform agrees with the fiducial-only solution at the markers and on the chest
 ``"fiducials"`` (it does not, having moved every marker alike, so the fiducial-only transform
 is used; the reasons and that transform's expected error on the chest wall are in
 ``warnings``), ``"flagged"`` (it does not, and it was kept: the disagreement sits at one
-marker, which the skin may have pulled along, or on the chest wall it is no larger than the
-fiducial-only solution's own expected error there, or ``fiducial_fallback = false``) or
+marker, which the skin may have pulled along, or on the chest wall it is within what the
+markers' localisation error alone gives 9 times in 10, or ``fiducial_fallback = false``) or
 ``"unchecked"`` (fewer than three consistent fiducials found: a warning, not an error).
 ``matrix`` is the transform used, ``refined_matrix`` the correlation's and
 ``fiducial_only_matrix`` the markers'.
