@@ -40,11 +40,16 @@ if sys.path and Path(sys.path[0]).resolve() == ROOT / "bench":
 
 def position_row(entry: dict, truth_tfm, points: np.ndarray) -> dict:
     """TRE (mean, max, mm) of the used, refined and fiducial-only transforms of one
-    ``registration.json`` entry against the truth at ``points``."""
+    ``registration.json`` entry against the truth at ``points``, with the chest-wall figures
+    its checks hold (the two transforms' difference, its expected size and null spread)."""
     from registration.qa import target_registration_error
     from registration.transforms import matrix_to_transform
 
     row = {"status": entry["status"]}
+    checks = entry.get("checks") or {}
+    for key in ("chest_wall_shift_mm", "expected_tre_mm", "chest_wall_null_mm"):
+        if key in checks:                   # what the fallback decided on (rigid._checked)
+            row[key] = {k: round(float(v), 3) for k, v in checks[key].items()}
     for key, what in (("matrix", "used"), ("refined_matrix", "refined"),
                       ("fiducial_only_matrix", "fiducials")):
         if entry.get(key) is None:
