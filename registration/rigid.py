@@ -238,10 +238,12 @@ def _checked(tfm, fid, used, fixed_points, moving_points, notes, *, chest,
 
 def _fallback_note(checks: dict) -> str:
     """The warning that the fiducial-only transform replaces a refined one that failed."""
-    exp = checks.get("expected_tre_mm")
-    where = ("" if exp is None else f", expected error on the chest wall {exp['mean']:.2f} mm "
-             f"mean, {exp['max']:.2f} mm max for a localisation error of "
-             f"{checks['fle_mm']:.2f} mm")
+    exp, wall, null = (checks.get(k) for k in ("expected_tre_mm", "chest_wall_shift_mm",
+                                               "chest_wall_null_mm"))
+    where = ("" if exp is None else f" (on the chest wall the two differ by {wall['mean']:.2f} "
+             f"mm mean, more than the {null['p90']:.2f} mm that the markers' localisation error "
+             f"of {checks['fle_mm']:.2f} mm gives 9 times in 10), expected error on the chest "
+             f"wall {exp['mean']:.2f} mm mean, {exp['max']:.2f} mm max")
     return ("the refinement moved every marker alike: using the fiducial-only transform "
             "instead of the refined one" + where
             + " ([register] fiducial_fallback = false keeps the refined one)")

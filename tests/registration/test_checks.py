@@ -373,6 +373,7 @@ def test_a_slide_within_the_fiducials_own_error_on_the_wall_keeps_the_refined_on
     if wall == "near":
         assert expected < 1.0 and p90 < 1.0
         assert status == "fiducials" and used is fid
+        assert any(f"more than the {p90:.2f} mm" in n and "9 times in 10" in n for n in notes)
     else:
         assert (expected < 1.5) if wall == "between" else (expected > 1.5)
         assert p90 > 1.7
