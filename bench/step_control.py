@@ -3,11 +3,13 @@ that inverts an element, on the paper's softest moduli (issue 20).
 
 Runs the paper-like model (``tests/breastlike.paper_model``: skin, fascia, ligaments,
 sliding with friction 0.1) on pipeline meshes of suite subjects (``bench/results/
-suite_meshes/``) at points of the paper's box that take several load steps, in three solver
+suite_meshes/``) at points of the paper's box that take several load steps, in four solver
 configurations, each on the same cases in one run:
 
+- ``auto`` (the default): each step starts from whichever of the two below leaves the
+  smaller residual, and a step that fails is tried once more from the other;
 - ``secant``: the step's first iterate extrapolated from the last two converged states
-  (``predictor = "secant"``, the default) and a failing step halved;
+  (``predictor = "secant"``) and a failing step halved;
 - ``converged``: the first iterate is the last converged state (``predictor =
   "converged"``; a step that fails from there is tried once more from the extrapolation
   before it is cut back);
@@ -51,7 +53,8 @@ CASES = [("small-000_labels", 0, "prone"), ("small-000_labels", 2, "prone"),
 #: The same, with the pipeline's ``[solver]`` (``breastmodel.pipeline.config``: two initial
 #: load steps, tolerance 1e-6): the paper's best moduli in every position.
 PIPELINE_CASES = [("truth_17k", "best", p) for p in ("prone", "supine", "tilted")]
-CONFIGS = {"secant": {}, "converged": {"predictor": "converged"},
+CONFIGS = {"auto": {"predictor": "auto"}, "secant": {"predictor": "secant"},
+           "converged": {"predictor": "converged"},
            "first cut": {"predictor": "converged", "first_inversion_shrink": 0.5}}
 
 

@@ -19,7 +19,8 @@ class State:
     log : per load step a dict with ``load``, ``step``, ``newton`` (iterations),
         ``residuals`` (relative norms), ``converged``, ``cutback`` reason or None,
         ``predictor`` (the step's first iterate: "converged" or "secant", see
-        :class:`mechanics.solver.SolverOptions`),
+        :class:`mechanics.solver.SolverOptions`; with "auto" also ``predictor_residuals``,
+        both starts' residual norms, mN),
         wall and CPU time of each cost phase (``t_<phase>``, ``cpu_<phase>``, s; phases:
         ``material`` the solid's forces and element stiffness, ``effects`` the effects'
         forces and tangents, ``assembly`` the sparse matrix, ``factor`` the factorisations

@@ -21,19 +21,29 @@ class SolverOptions:
     min_step : smallest load increment before giving up
     max_cutbacks : total cut-backs allowed in one solve
     grow_below : grow the increment (x2) after a step that took at most this many iterations
-    predictor : a step's first iterate: "secant" (the last two converged states
-        extrapolated; before the first converged step the initial guess scaled to the load)
-        or "converged" (the last converged state, moved along the initial guess if one was
-        given; a step that fails from there is tried once more from the extrapolation
-        before it is cut back). Measured (``bench/step_control.py``): at the paper's softest
-        moduli on the suite's meshes "converged" took 0.4-1x the Newton iterations (the 17k
-        mesh's softest corner 52 against 75), but it is not the default: in the slow
-        diagnosis tests a sliding candidate's solve diverged with it at load 0.75 (13
-        cut-backs) where the extrapolation converges. That contact with friction has more
-        than one equilibrium: from the same converged state at load 0.25 the two
-        predictors converge at 0.5 to states up to 0.52 mm apart (56 nodes over 0.1 mm);
-        the branch the converged state follows ends near 0.749 (every step beyond stalls
-        at a relative residual of about 0.05, as at a fold), the other reaches full load
+    predictor : a step's first iterate: "auto" (the default: of the two below, the one
+        whose first iterate leaves the smaller residual norm on the free dofs, both norms in
+        the step's log as ``predictor_residuals``; a step that fails from it is tried once
+        more from the other before it is cut back, unless the other inverts an element),
+        "secant" (the last two converged states extrapolated; before the first converged
+        step the initial guess scaled to the load) or "converged" (the last converged
+        state, moved along the initial guess if one was given; a step that fails from there
+        is tried once more from the extrapolation before it is cut back). Measured with two
+        initial steps (the pipeline's): the 17k-tet suite mesh's softest corner in prone 62
+        -> 38 Newton iterations ("auto" takes the converged state at every later step: the
+        extrapolation leaves 12-390x its residual), the paper's best moduli 15 either way
+        (the extrapolation inverts an element); the box on the five suite meshes
+        (``bench/effects_box.py``) 135 of 135 either way, 1850 -> 1825 iterations (with one
+        initial step 1288 -> 1290). Choosing the extrapolation unless its residual is over
+        4x the converged state's took the box to 1803 but lost a slow diagnosis test (the
+        fascia candidate's verified tilted error 0.40 mm against the bound 0.31). "converged"
+        alone (``bench/step_control.py``) lost a sliding candidate's solve in the slow
+        diagnosis tests: it diverged at load 0.75 (13 cut-backs) where the extrapolation
+        converges. That contact with friction has more than one equilibrium: from the same
+        converged state at load 0.25 the two predictors converge at 0.5 to states up to
+        0.52 mm apart (56 nodes over 0.1 mm); the branch the converged state follows ends
+        near 0.749 (every step beyond stalls at a relative residual of about 0.05, as at a
+        fold), the other reaches full load
     first_inversion_shrink : where > 0, a first step from rest whose first Newton direction
         inverts an element unless scaled by eta (the line search's largest valid length) is
         cut back at once to ``eta * first_inversion_shrink`` of its load instead of being
@@ -121,7 +131,7 @@ class SolverOptions:
     min_step: float = 1e-4
     max_cutbacks: int = 20
     grow_below: int = 6
-    predictor: str = "secant"
+    predictor: str = "auto"
     first_inversion_shrink: float = 0.0
     linear_solver: str = "auto"
     line_search: bool = True

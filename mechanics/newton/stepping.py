@@ -91,6 +91,23 @@ def _predictor(nw: _Newton, path: _Path, new_lam: float, guess, kind: str) -> np
     return u_try
 
 
+def _smaller_start(nw: _Newton, path: _Path, new_lam: float, guess) -> tuple[str, dict]:
+    """The predictor ("secant" or "converged") whose first iterate has the smaller residual
+    norm on the free dofs at ``new_lam``, and both norms (mN; infinite where the iterate
+    inverts an element). Without two converged states the two are one: "converged"."""
+    if path.prev is None or path.lam <= path.prev[0]:
+        return "converged", {}
+    norms = {}
+    for kind in ("secant", "converged"):
+        try:
+            _, R, _ = nw.evaluate(_predictor(nw, path, new_lam, guess, kind), new_lam,
+                                  tangent=False)
+            norms[kind] = nw.norms(R)[0]
+        except InvalidConfiguration:
+            norms[kind] = np.inf
+    return min(norms, key=norms.get), norms
+
+
 def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     """One load step from the path's last converged state to ``new_lam``: the effects'
     ``begin_step``, the predictor ``kind`` (the converged state itself where the predictor
@@ -104,6 +121,10 @@ def _load_step(nw: _Newton, path: _Path, new_lam: float, guess, kind: str):
     entry = {"step": len(path.steps) + 1, "load": new_lam, "newton": 0, "residuals": [],
              "converged": False, "cutback": None}
     nw.trace = entry["linear"] = []
+    if kind == "auto":
+        kind, norms = _smaller_start(nw, path, new_lam, guess)
+        if norms:
+            entry["predictor_residuals"] = norms
     entry["predictor"] = kind
     u_try = _predictor(nw, path, new_lam, guess, kind)
     start = []  # [ev, R, A] at u_try, handed over to (and emptied by) the iterations
@@ -199,11 +220,14 @@ def _solve(model: Model, X, u0, options: SolverOptions) -> State:
     while path.lam < 1.0 - 1e-12:
         new_lam = _next_load(path, stops)
         ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, options.predictor)
-        if not ok and options.predictor == "converged" and path.prev is not None:
-            # the same step once more from the extrapolation before cutting back: the
+        other = "secant" if entry["predictor"] == "converged" else "converged"
+        if not ok and options.predictor in ("converged", "auto") and path.prev is not None \
+                and np.isfinite(entry.get("predictor_residuals", {}).get(other, 0.0)):
+            # the same step once more from the other predictor before cutting back (not
+            # where that one inverts an element: it would start from the same state): the
             # converged state is the better start on the softest moduli, the extrapolation
             # near a Gent fascia's limit stretch (bench/step_control.py)
-            ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, "secant")
+            ok, u_try, ev, entry = _load_step(nw, path, new_lam, guess, other)
         if ok:
             _advance(path, new_lam, u_try, ev, entry, options)
         else:

@@ -24,8 +24,8 @@ class _Newton(_Directions):
     """One solve's working data (not public)."""
 
     def __init__(self, model: Model, X: np.ndarray, options: SolverOptions):
-        if options.predictor not in ("converged", "secant"):
-            raise ValueError(f"mechanics: predictor must be 'converged' or 'secant', "
+        if options.predictor not in ("auto", "converged", "secant"):
+            raise ValueError(f"mechanics: predictor must be 'auto', 'converged' or 'secant', "
                              f"got {options.predictor!r}")
         self.model, self.X, self.opt = model, X, options
         self.solid = _solid(model, X)
