@@ -86,7 +86,11 @@ def run_point(mesh, point, position, sliding, options, changes=None, anatomy=Non
     row["error"] = error
     if st is not None:
         row["load"] = float(st.load) if error is not None else 1.0
-        row["newton_total"] = int(sum(e["newton"] for e in st.log))
+        # with predictor "auto", a path abandoned for the extrapolation's counts too
+        abandoned = st.stats.get("abandoned_path")
+        row["abandoned_path"] = abandoned
+        row["newton_total"] = int(sum(e["newton"] for e in st.log)) + \
+            (abandoned["newton"] if abandoned else 0)
         row["newton_converged_steps"] = [e["newton"] for e in st.log if e["converged"]]
         row["cutbacks"] = sum(1 for e in st.log if not e["converged"])
         row["max_displacement_mm"] = float(st.max_displacement())

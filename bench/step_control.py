@@ -6,10 +6,10 @@ sliding with friction 0.1) on pipeline meshes of suite subjects (``bench/results
 suite_meshes/``) at points of the paper's box that take several load steps, in four solver
 configurations, each on the same cases in one run:
 
-- ``auto`` (the default): each step starts from whichever of the two below leaves the
+- ``auto``: each step starts from whichever of the two below leaves the
   smaller residual, and a step that fails is tried once more from the other;
 - ``secant``: the step's first iterate extrapolated from the last two converged states
-  (``predictor = "secant"``) and a failing step halved;
+  (``predictor = "secant"``, the default) and a failing step halved;
 - ``converged``: the first iterate is the last converged state (``predictor =
   "converged"``; a step that fails from there is tried once more from the extrapolation
   before it is cut back);

@@ -21,23 +21,24 @@ class SolverOptions:
     min_step : smallest load increment before giving up
     max_cutbacks : total cut-backs allowed in one solve
     grow_below : grow the increment (x2) after a step that took at most this many iterations
-    predictor : a step's first iterate: "auto" (the default: of the two below, the one
-        whose first iterate leaves the smaller residual norm on the free dofs, both norms in
-        the step's log as ``predictor_residuals``; a step that fails from it is tried once
-        more from the other before it is cut back, unless the other inverts an element),
-        "secant" (the last two converged states extrapolated; before the first converged
-        step the initial guess scaled to the load) or "converged" (the last converged
-        state, moved along the initial guess if one was given; a step that fails from there
-        is tried once more from the extrapolation before it is cut back). Measured with two
-        initial steps (the pipeline's): the 17k-tet suite mesh's softest corner in prone 62
-        -> 38 Newton iterations ("auto" takes the converged state at every later step: the
-        extrapolation leaves 12-390x its residual), the paper's best moduli 15 either way
-        (the extrapolation inverts an element); the box on the five suite meshes
-        (``bench/effects_box.py``) 135 of 135 either way, 1850 -> 1825 iterations (with one
-        initial step 1288 -> 1290). Choosing the extrapolation unless its residual is over
-        4x the converged state's took the box to 1803 but lost a slow diagnosis test (the
-        fascia candidate's verified tilted error 0.40 mm against the bound 0.31). "converged"
-        alone (``bench/step_control.py``) lost a sliding candidate's solve in the slow
+    predictor : a step's first iterate: "secant" (the default: the last two converged
+        states extrapolated; before the first converged step the initial guess scaled to the
+        load), "converged" (the last converged state, moved along the initial guess if one
+        was given; a step that fails from there is tried once more from the extrapolation
+        before it is cut back) or "auto" (of those two, the one whose first iterate leaves
+        the smaller residual norm on the free dofs, both norms in the step's log as
+        ``predictor_residuals``; a path that ends without equilibrium is solved once more
+        from the extrapolation, see ``mechanics.newton.stepping._solve``). Measured with
+        two initial steps on the 17k-tet suite mesh (``bench/effects_box.py --points
+        best,0 --predictor auto``): the softest corner in prone 62 -> 38 Newton iterations
+        (CPU 2.1x the paper's best moduli, against 3.9x), in supine 400 (240 on a path that
+        ends at load 0.86, then 160 from the extrapolation) against 160; the box on the five
+        suite meshes 135 of 135 either way, 1850 -> 1825 iterations. Not the default: with
+        friction the two starts follow different equilibrium branches, and the fits of the
+        validation suite have not been rerun with it. Choosing the extrapolation unless its
+        residual was over 4x the converged state's lost a slow diagnosis test (the fascia
+        candidate's verified tilted error 0.40 mm against the bound 0.31). "converged" alone
+        (``bench/step_control.py``) lost a sliding candidate's solve in the slow
         diagnosis tests: it diverged at load 0.75 (13 cut-backs) where the extrapolation
         converges. That contact with friction has more than one equilibrium: from the same
         converged state at load 0.25 the two predictors converge at 0.5 to states up to
@@ -131,7 +132,7 @@ class SolverOptions:
     min_step: float = 1e-4
     max_cutbacks: int = 20
     grow_below: int = 6
-    predictor: str = "auto"
+    predictor: str = "secant"
     first_inversion_shrink: float = 0.0
     linear_solver: str = "auto"
     line_search: bool = True
