@@ -7,7 +7,8 @@ suite_meshes/``) at points of the paper's box that take several load steps, in f
 configurations, each on the same cases in one run:
 
 - ``auto``: each step starts from whichever of the two below leaves the
-  smaller residual, and a step that fails is tried once more from the other;
+  smaller residual; a path that ends without equilibrium is solved once more from the
+  extrapolation;
 - ``secant``: the step's first iterate extrapolated from the last two converged states
   (``predictor = "secant"``, the default) and a failing step halved;
 - ``converged``: the first iterate is the last converged state (``predictor =
