@@ -324,7 +324,7 @@ def test_markers_follow_a_deformation_the_fixed_point_cannot_invert():
 def test_markers_where_the_deformation_jumps_by_less_than_the_root_tolerance():
     """u continuous only up to a 0.006 mm jump at the root (the closest-point extrapolation
     outside a simulated mesh): no exact root exists (|x - X - u(x)| >= 0.003 mm); the marker
-    lands within ROOT_TOL_MM of one. A fold (a jump of millimetres) is still an error."""
+    lands within ROOT_TOL_MM of one. A fold (a jump of millimetres) is an error."""
     from breastmodel.phantom.writer import ROOT_TOL_MM, _deformed
 
     def jumping(jump):
@@ -341,3 +341,27 @@ def test_markers_where_the_deformation_jumps_by_less_than_the_root_tolerance():
     assert np.allclose(x[0], X / 0.8, atol=0.01)
     with pytest.raises(RuntimeError, match="not invertible"):
         _deformed(X, jumping(6.0))
+
+
+def test_a_marker_where_the_deformation_jumps_lands_where_the_image_shows_it():
+    """u jumps by 0.3 mm at the root (the closest-point extrapolation switching surfaces in a
+    concave corner): no root within ROOT_TOL_MM exists, and the marker is placed at the centre
+    of the rendered ball, the points x whose material point x - u(x) lies in the marker's
+    ball, here computed again on a finer grid; a jump above half the radius is an error."""
+    from breastmodel.phantom.writer import ROOT_TOL_MM, _deformed
+
+    def u(p, jump=0.3):  # X(x) = 0.8 x -+ jump/2 in x0 on either side of x0 = 1
+        p = np.asarray(p, float)
+        shift = np.where(p[:, :1] >= 1.0, -jump / 2, jump / 2)
+        return 0.2 * p + shift * np.array([1.0, 0.0, 0.0])
+
+    X, r = np.array([0.8, 4.0, -7.0]), 2.0
+    x = _deformed(X, u, radius=r)
+    assert np.max(np.abs(x - X - u(x))) > ROOT_TOL_MM  # no root: the fallback placed it
+    t = np.arange(-4.0, 4.0, 0.04)
+    g = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3) + X / 0.8
+    inside = np.sum((g - u(g) - X) ** 2, axis=1) <= r**2
+    assert 0 < inside.sum() and np.allclose(x[0], g[inside].mean(axis=0), atol=0.02)
+    assert np.linalg.norm(x[0] - X / 0.8) < 0.3  # within the jump of the smooth root
+    with pytest.raises(RuntimeError, match="not invertible"):
+        _deformed(X, lambda p: u(p, jump=1.2), radius=r)
