@@ -98,11 +98,38 @@ def _levels_and_dark_regions(a, sp, *, skin_level, min_region_mm3, muscle_min_mm
         if muscle0.any() and thorax.any():
             lv["muscle"] = _interior_median(a, muscle0, lv["muscle"])
         elif muscle0.any():  # a wall meeting air is thin: its interior is the glands on it
-            lv["muscle"] = float(np.median(a[muscle0]))
+            lv["muscle"] = _darker_mode(a[muscle0])
         if not thorax.any():  # muscle meets air: the dark side of the muscle is air
             lv["thorax"] = lv["air"]
         t_dark, t_bright = _thresholds(lv)
     return lv, air, thorax, muscle0, by_edge
+
+
+#: Otsu's effectiveness (between-class over total variance) above which intensities are two
+#: modes: a single Gaussian gives 2 / pi = 0.64 at any split.
+BIMODAL_EFFECTIVENESS = 0.75
+
+
+def _darker_mode(values: np.ndarray) -> float:
+    """The muscle's level from the start of a wall that meets air: the median of the darker
+    Otsu class where the values are two modes (on a T2-weighted scan the glands lying on the
+    wall are more than twice as bright as the muscle and join its start), else the median.
+    The plain median of such a start took the glands' level (small-005's tilted scan: a start
+    of 8150 muscle and 7501 gland voxels read 0.41 of fat against the muscle's 0.18; the next
+    threshold made half the wall dark and the glands became the muscle)."""
+    from skimage.filters import threshold_otsu
+
+    v = np.asarray(values, float)
+    if v.size < 2 or np.ptp(v) == 0:
+        return float(np.median(v)) if v.size else 0.0
+    t = float(threshold_otsu(v))
+    low, high = v[v <= t], v[v > t]
+    if low.size == 0 or high.size == 0:
+        return float(np.median(v))
+    between = low.size * high.size / v.size**2 * (low.mean() - high.mean()) ** 2
+    if between / v.var() > BIMODAL_EFFECTIVENESS:
+        return float(np.median(low))
+    return float(np.median(v))
 
 
 def _split_dark(a, t_dark, lv, *, vox_mm3, min_region_mm3, name):

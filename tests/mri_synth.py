@@ -159,11 +159,11 @@ def write_subject(folder, images: dict, *, fiducials: dict | None = None,
 
 
 def render_family_supine(seed: int, root, *, snr: float | None = None,
-                         bias: float | None = None):
-    """(spec, supine scan, its truth labels) of the validation suite's small subject
-    ``seed`` (``draw_spec(seed, size="small")``), rendered under ``root`` by the renderer
-    ``make_subject`` uses, with rigid motion only (no FE truth is needed to score a
-    segmentation); at the drawn SNR and bias unless given."""
+                         bias: float | None = None, position: str = "supine"):
+    """(spec, scan, its truth labels) of the validation suite's small subject ``seed``
+    (``draw_spec(seed, size="small")``) in ``position`` (supine unless given), rendered under
+    ``root`` by the renderer ``make_subject`` uses, with rigid motion only (no FE truth is
+    needed to score a segmentation); at the drawn SNR and bias unless given."""
     from breastmodel.phantom import make_phantom
     from breastmodel.phantom.family import draw_spec
     from imaging.io import read_volume
@@ -172,8 +172,8 @@ def render_family_supine(seed: int, root, *, snr: float | None = None,
     out = Path(root) / "subject"
     make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
                  snr=snr or spec.snr, bias=spec.bias if bias is None else bias,
-                 positions=("supine",), contrast=spec.contrast,
+                 positions=(position,), contrast=spec.contrast,
                  fat_suppressed=spec.fat_suppressed, max_rotation_deg=spec.max_rotation_deg,
                  max_translation_mm=spec.max_translation_mm, progress=False)
-    return (spec, read_volume(out / "supine.nii.gz"),
-            read_volume(Path(root) / "subject_truth" / "supine_labels.nii.gz"))
+    return (spec, read_volume(out / f"{position}.nii.gz"),
+            read_volume(Path(root) / "subject_truth" / f"{position}_labels.nii.gz"))
