@@ -7,4 +7,4 @@ class StageError(RuntimeError):
     def __init__(self, stage: str, message: str, path=None):
         where = f" [{path}]" if path is not None else ""
         super().__init__(f"{stage}{where}: {message}")
-        self.stage, self.path = stage, path
+        self.stage, self.path, self.message = stage, path, message

@@ -80,6 +80,7 @@ def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[
     import SimpleITK as sitk
 
     from breastmodel.pipeline.config import given_labels
+    from breastmodel.pipeline.segment import read_confidence
     from imaging.io import read_volume
     from imaging.qa import tissue_volumes_ml
 
@@ -96,13 +97,18 @@ def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[
         img = read_volume(vols[pos])  # a file or a DICOM series folder
         v = tissue_volumes_ml(labels)
         given = given_labels(segment, pos)
+        conf = read_confidence(lab_path.parent, pos)
         rows.append([pos, "segmented" if given is None else f"given: {given}",
-                     *(v.get(k) for k in ("breast", "muscle", "gland"))])
+                     *(v.get(k) for k in ("breast", "muscle", "gland")),
+                     " / ".join(f"{conf['agreement'][k]:.3f}" for k in ("body", "muscle")
+                                if k in conf.get("agreement", {})) or "-",
+                     "; ".join(conf.get("warnings") or []) or "-"])
         parts.append(img_tag(segmentation_figure(pos, img, labels, "segmentation"),
                           f"segmentation {pos}"))
     if rows:
         parts.insert(2, _table(["position", "label map", "breast (ml)", "muscle (ml)",
-                                "gland (ml)"], rows))
+                                "gland (ml)", "agreement body / muscle (Dice)", "warnings"],
+                               rows))
     reg = images.get("registration") or {}
     ref = images["reference"]
     parts += ["<h2 id='registration'>Registration QA</h2>",

@@ -156,6 +156,17 @@ def _stop_if_it_does_not_hold(res, summary, out: Path, stop: float, *, img_path)
             "= 0 to go on with it", img_path)
 
 
+def read_confidence(out: Path, position: str) -> dict[str, Any]:
+    """A position's confidence from ``out/segmentation.json`` (:func:`update_summary`): its
+    regions' agreement, the warnings, ``confident``; {} where none was written (a label map
+    given, not segmented)."""
+    path = Path(out) / "segmentation.json"
+    if not path.is_file():
+        return {}
+    entry = json.loads(path.read_text()).get("positions", {}).get(position) or {}
+    return dict(entry.get("confidence") or {})
+
+
 def update_summary(out: Path, position: str, summary: Mapping[str, Any]) -> None:
     """Merge one position's summary into ``out/segmentation.json`` (atomic)."""
     from breastmodel.config import write_json

@@ -36,7 +36,7 @@ def segment_stage(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[P
         import SimpleITK as sitk
 
         from breastmodel.pipeline.config import GIVEN_LABEL_KEYS, given_labels
-        from breastmodel.pipeline.segment import segment_position
+        from breastmodel.pipeline.segment import segment_position, update_summary
         from imaging.io import read_volume, write_volume
 
         vol = subject.positions[position].volume_path
@@ -47,10 +47,16 @@ def segment_stage(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[P
             write_volume(labels, d / f"{position}_labels.nii.gz")
         else:
             try:
-                segment_position(subject, position, d, preprocess_options=cfg["preprocess"],
-                                 segment_options=seg)
+                summary = segment_position(subject, position, d,
+                                           preprocess_options=cfg["preprocess"],
+                                           segment_options=seg)
             except ValueError as exc:
                 raise StageError("segment", str(exc), vol) from None
+            update_summary(d, position, summary)
+            warnings = (summary.get("confidence") or {}).get("warnings") or []
+            if warnings:
+                log.warning("segment %s: %s (look at %s)", position, "; ".join(warnings),
+                            d / summary["qa"])
             labels = read_volume(d / f"{position}_labels.nii.gz")
         a = sitk.GetArrayViewFromImage(labels)
         if not np.isin(a, BREAST_TISSUE).any():
@@ -77,12 +83,30 @@ def register_stage(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]
         try:
             # the subject as read once by the run, the [register] table as a value
             register_subject(subject, d, seg_dir=labels, config=cfg["register"])
-        except StageError:
-            raise
+        except StageError as exc:
+            doubt = doubtful_segmentations(seg_dirs)
+            if not doubt:
+                raise
+            raise StageError("register", f"{exc.message}. The chest wall it registers on comes "
+                             f"from the segmentation, which doubted itself: {doubt}; look "
+                             "at that first", exc.path) from None
         except (ValueError, RuntimeError) as exc:
             raise StageError("register", str(exc), subject.root) from None
         shutil.rmtree(labels)
     return fn
+
+
+def doubtful_segmentations(seg_dirs: Mapping[str, Path]) -> str:
+    """The positions whose segmentation doubted itself (the confidence its stage folder
+    keeps), as one sentence; "" where none did (or the label maps were given)."""
+    from breastmodel.pipeline.segment import read_confidence
+
+    said = []
+    for pos, folder in seg_dirs.items():
+        conf = read_confidence(folder, pos)
+        if conf and not conf.get("confident", True):
+            said.append(f"{pos!r} ({'; '.join(conf.get('warnings') or ['not confident'])})")
+    return "; ".join(said)
 
 
 

@@ -1,0 +1,76 @@
+"""The pipeline's segment stage keeps the segmentation's own confidence, says when it doubts
+itself, and a registration that then fails names that doubt (issue 14: no stage degrades
+silently). Before, `breastmodel run` dropped the confidence: on the validation suite's
+small-005 (slab, T2) the tilted scan's muscle (Dice 0.024) went on unreported until the
+registration stopped with a message about the fiducials alone."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from mri_synth import render_family_supine
+
+from breastmodel.errors import StageError
+from breastmodel.pipeline.segment import read_confidence, update_summary
+from breastmodel.pipeline.subject_stages import (
+    doubtful_segmentations,
+    register_stage,
+    segment_stage,
+)
+
+
+def test_the_segment_stage_keeps_the_confidence_and_warns(tmp_path, caplog):
+    from imaging.subject import read_subject
+
+    pos = "supine_tilted_49"
+    render_family_supine(5, tmp_path, position=pos)
+    subject = read_subject(tmp_path / "subject")
+    d = tmp_path / "stage"
+    d.mkdir()
+    with caplog.at_level(logging.WARNING, logger="breastmodel.pipeline"):
+        segment_stage(subject, pos, {"preprocess": {}, "segment": {}})(d)
+    conf = read_confidence(d, pos)
+    assert set(conf["agreement"]) == {"body", "muscle"}
+    assert all(0.0 <= v <= 1.0 for v in conf["agreement"].values())
+    assert conf["confident"] == (not conf["warnings"])
+    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith(f"segment {pos}")]
+    assert bool(said) == bool(conf["warnings"])
+    assert all(w in said[0] for w in conf["warnings"])
+
+
+def test_a_registration_that_stops_names_the_segmentation_that_doubted_itself(tmp_path,
+                                                                               monkeypatch):
+    import breastmodel.pipeline.register as register
+
+    seg_dirs = {}
+    for pos, confident in (("supine", True), ("prone", False)):
+        seg_dirs[pos] = tmp_path / pos
+        seg_dirs[pos].mkdir()
+        (seg_dirs[pos] / f"{pos}_labels.nii.gz").write_bytes(b"")
+        warnings = [] if confident else ["low confidence: the muscle's active contour and "
+                                         "its threshold start agree only to Dice 0.610"]
+        update_summary(seg_dirs[pos], pos, {"confidence": {
+            "agreement": {"body": 0.99, "muscle": 0.61}, "warnings": warnings,
+            "confident": confident}})
+    assert doubtful_segmentations(seg_dirs) == f"'prone' ({warnings[0]})"
+
+    def stops(*args, **kwargs):
+        raise StageError("register", "position 'prone': the registration is flagged", "r.json")
+
+    monkeypatch.setattr(register, "register_subject", stops)
+    d = tmp_path / "register"
+    d.mkdir()
+    with pytest.raises(StageError) as exc:
+        register_stage(object(), seg_dirs, {"register": {}})(d)
+    msg = str(exc.value)
+    assert msg.startswith("register [r.json]: position 'prone': the registration is flagged.")
+    assert "doubted itself: 'prone' (low confidence: the muscle's" in msg
+    assert "'supine'" not in msg
+    # without a doubtful segmentation the registration's own error goes out as it was
+    update_summary(seg_dirs["prone"], "prone", {"confidence": {"warnings": [],
+                                                               "confident": True}})
+    d2 = tmp_path / "register2"
+    d2.mkdir()
+    with pytest.raises(StageError, match=r"flagged$"):
+        register_stage(object(), seg_dirs, {"register": {}})(d2)
