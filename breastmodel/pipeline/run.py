@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import shutil
 import time
 from collections.abc import Mapping
@@ -47,6 +48,8 @@ from breastmodel.pipeline.subject_stages import (
     segment_stage,
     skins_stage,
 )
+
+log = logging.getLogger("breastmodel.pipeline")
 
 __all__ = ["Prepared", "RunResult", "cache_of", "prepare_subject", "run_problem", "run_subject"]
 
@@ -131,6 +134,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
             seg_dirs[pos], seg_keys[pos] = R.stage(
                 "segment", {**seg_cfg, "position": pos}, _segment_inputs(subject, pos, cfg),
                 segment_stage(subject, pos, seg_cfg), label=f"segment {pos}")
+            _say_doubts(seg_dirs[pos], pos)
             if pos == ref and not R.done("mesh", mesh_cfg, [seg_keys[ref]]):
                 job = background.enter_context(mesh_in_background(
                     _labels(seg_dirs, ref), **mesh_options(cfg)))
@@ -154,6 +158,16 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
                                  problem_stage(subject, reg_dir, mesh_dir, skins_dir))
     return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs, inputs,
                     seg_keys)
+
+
+def _say_doubts(seg_dir: Path, position: str) -> None:
+    """Warn, on every run that uses it, where a position's segmentation doubted itself."""
+    from breastmodel.pipeline.segment import read_confidence
+
+    warnings = read_confidence(seg_dir, position).get("warnings") or []
+    if warnings:
+        log.warning("segment %s: %s (look at %s)", position, "; ".join(warnings),
+                    Path(seg_dir) / f"{position}_qa.png")
 
 
 def _mesh_key(mesh: Mapping[str, Any]) -> dict:

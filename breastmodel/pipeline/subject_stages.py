@@ -53,10 +53,6 @@ def segment_stage(subject, position: str, cfg: Mapping[str, Any]) -> Callable[[P
             except ValueError as exc:
                 raise StageError("segment", str(exc), vol) from None
             update_summary(d, position, summary)
-            warnings = (summary.get("confidence") or {}).get("warnings") or []
-            if warnings:
-                log.warning("segment %s: %s (look at %s)", position, "; ".join(warnings),
-                            d / summary["qa"])
             labels = read_volume(d / f"{position}_labels.nii.gz")
         a = sitk.GetArrayViewFromImage(labels)
         if not np.isin(a, BREAST_TISSUE).any():

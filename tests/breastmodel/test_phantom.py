@@ -308,7 +308,7 @@ def test_full_size_default_phantom(tmp_path):
 def test_markers_follow_a_deformation_the_fixed_point_cannot_invert():
     """x = X + u(x) with |grad u| > 1 (u = -1.5 (x - c): the plain fixed point diverges) is
     solved by the Newton fallback; the result satisfies the equation and is the exact root."""
-    from breastmodel.phantom.writer import _deformed
+    from breastmodel.phantom.placement import deformed_point
 
     c = np.array([10.0, -20.0, 5.0])
 
@@ -316,7 +316,7 @@ def test_markers_follow_a_deformation_the_fixed_point_cannot_invert():
         return -1.5 * (np.asarray(p, float) - c)
 
     X = np.array([3.0, 4.0, -7.0])
-    x = _deformed(X, u)
+    x = deformed_point(X, u)
     assert np.max(np.abs(x - X - u(x))) < 1e-8
     assert np.allclose(x[0], (X + 1.5 * c) / 2.5, atol=1e-8)
 
@@ -325,7 +325,7 @@ def test_markers_where_the_deformation_jumps_by_less_than_the_root_tolerance():
     """u continuous only up to a 0.006 mm jump at the root (the closest-point extrapolation
     outside a simulated mesh): no exact root exists (|x - X - u(x)| >= 0.003 mm); the marker
     lands within ROOT_TOL_MM of one. A fold (a jump of millimetres) is an error."""
-    from breastmodel.phantom.writer import ROOT_TOL_MM, _deformed
+    from breastmodel.phantom.placement import ROOT_TOL_MM, deformed_point
 
     def jumping(jump):
         def u(p):  # x - X - u(x) jumps from -jump/2 to +jump/2 in x0 at the root x0 = 1
@@ -336,11 +336,11 @@ def test_markers_where_the_deformation_jumps_by_less_than_the_root_tolerance():
 
     X = np.array([0.8, 4.0, -7.0])  # the smooth root is x = X / 0.8
     u = jumping(0.006)
-    x = _deformed(X, u)
+    x = deformed_point(X, u)
     assert np.max(np.abs(x - X - u(x))) < ROOT_TOL_MM
     assert np.allclose(x[0], X / 0.8, atol=0.01)
     with pytest.raises(RuntimeError, match="not invertible"):
-        _deformed(X, jumping(6.0))
+        deformed_point(X, jumping(6.0))
 
 
 def test_a_marker_where_the_deformation_jumps_lands_where_the_image_shows_it():
@@ -348,7 +348,7 @@ def test_a_marker_where_the_deformation_jumps_lands_where_the_image_shows_it():
     concave corner): no root within ROOT_TOL_MM exists, and the marker is placed at the centre
     of the rendered ball, the points x whose material point x - u(x) lies in the marker's
     ball, here computed again on a finer grid; a jump above half the radius is an error."""
-    from breastmodel.phantom.writer import ROOT_TOL_MM, _deformed
+    from breastmodel.phantom.placement import ROOT_TOL_MM, deformed_point
 
     def u(p, jump=0.3):  # X(x) = 0.8 x -+ jump/2 in x0 on either side of x0 = 1
         p = np.asarray(p, float)
@@ -356,7 +356,7 @@ def test_a_marker_where_the_deformation_jumps_lands_where_the_image_shows_it():
         return 0.2 * p + shift * np.array([1.0, 0.0, 0.0])
 
     X, r = np.array([0.8, 4.0, -7.0]), 2.0
-    x = _deformed(X, u, radius=r)
+    x = deformed_point(X, u, radius=r)
     assert np.max(np.abs(x - X - u(x))) > ROOT_TOL_MM  # no root: the fallback placed it
     t = np.arange(-4.0, 4.0, 0.04)
     g = np.stack(np.meshgrid(t, t, t, indexing="ij"), axis=-1).reshape(-1, 3) + X / 0.8
@@ -364,4 +364,4 @@ def test_a_marker_where_the_deformation_jumps_lands_where_the_image_shows_it():
     assert 0 < inside.sum() and np.allclose(x[0], g[inside].mean(axis=0), atol=0.02)
     assert np.linalg.norm(x[0] - X / 0.8) < 0.3  # within the jump of the smooth root
     with pytest.raises(RuntimeError, match="not invertible"):
-        _deformed(X, lambda p: u(p, jump=1.2), radius=r)
+        deformed_point(X, lambda p: u(p, jump=1.2), radius=r)

@@ -20,7 +20,8 @@ from breastmodel.pipeline.subject_stages import (
 )
 
 
-def test_the_segment_stage_keeps_the_confidence_and_warns(tmp_path, caplog):
+def test_the_segment_stage_keeps_the_confidence_and_the_run_says_its_doubts(tmp_path, caplog):
+    from breastmodel.pipeline.run import _say_doubts
     from imaging.subject import read_subject
 
     pos = "supine_tilted_49"
@@ -28,15 +29,25 @@ def test_the_segment_stage_keeps_the_confidence_and_warns(tmp_path, caplog):
     subject = read_subject(tmp_path / "subject")
     d = tmp_path / "stage"
     d.mkdir()
-    with caplog.at_level(logging.WARNING, logger="breastmodel.pipeline"):
-        segment_stage(subject, pos, {"preprocess": {}, "segment": {}})(d)
+    segment_stage(subject, pos, {"preprocess": {}, "segment": {}})(d)
     conf = read_confidence(d, pos)
     assert set(conf["agreement"]) == {"body", "muscle"}
     assert all(0.0 <= v <= 1.0 for v in conf["agreement"].values())
     assert conf["confident"] == (not conf["warnings"])
-    said = [r.getMessage() for r in caplog.records if r.getMessage().startswith(f"segment {pos}")]
-    assert bool(said) == bool(conf["warnings"])
-    assert all(w in said[0] for w in conf["warnings"])
+    # the run warns from the stage's final folder (a cached stage's doubts are said again)
+    doubt = {"agreement": {"body": 0.61}, "confident": False,
+             "warnings": ["low confidence: the body's active contour ... Dice 0.610"]}
+    for folder, c in ((d, conf), (tmp_path / "doubting", doubt)):
+        folder.mkdir(exist_ok=True)
+        update_summary(folder, pos, {"confidence": c})
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="breastmodel.pipeline"):
+            _say_doubts(folder, pos)
+        said = [r.getMessage() for r in caplog.records]
+        assert len(said) == (1 if c["warnings"] else 0)
+        if said:
+            assert all(w in said[0] for w in c["warnings"])
+            assert said[0].endswith(f"(look at {folder / f'{pos}_qa.png'})")
 
 
 def test_a_registration_that_stops_names_the_segmentation_that_doubted_itself(tmp_path,
