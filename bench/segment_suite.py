@@ -10,6 +10,14 @@ fields of view, voxel shapes and contrasts); this script reads them from its wor
 Prints a table and writes bench/results/segment_suite.json. Targets (issue 14): Dice >= 0.95
 breast, >= 0.90 muscle, >= 0.80 gland where labelled, on every scan; and a scan that misses
 them is flagged by the segmentation's own confidence (never silently wrong).
+
+Beyond the suite's subjects, ``--family`` renders the phantom family's specs of the given
+seeds (all three positions, with their rigid motions only: no FE truth is needed to score a
+segmentation, and the FEBio-deformed scans give the same figures within about 0.01),
+optionally only one field of view or contrast, under ``--work``/family::
+
+    .venv/bin/python bench/segment_suite.py --family 0-59 --fov slab --contrast fat_bright \
+        --work /tmp/family --json bench/results/segment_family_slab_fat_bright.json
 """
 
 from __future__ import annotations
@@ -53,6 +61,43 @@ def segment_subject(subject: Path) -> list[dict]:
     return rows
 
 
+def _seeds(text: str) -> list[int]:
+    """"0-59" or "5,12,18" (or both, joined by commas)."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi) + 1)) if hi else [int(lo)]
+    return out
+
+
+def render_family(seeds, work: Path, *, fov: str | None = None,
+                  contrast: str | None = None) -> list[Path]:
+    """Subject folders of the family's small specs of ``seeds`` (only ``fov`` and
+    ``contrast``, "fat_bright" or "fat_suppressed", where given), rendered with rigid
+    motion only under ``work``/family, each with its truth's ``spec.json`` (made once)."""
+    from breastmodel.phantom import make_phantom
+    from breastmodel.phantom.family import draw_spec
+
+    subjects = []
+    for seed in seeds:
+        spec = draw_spec(seed, size="small")
+        kind = "fat_suppressed" if spec.fat_suppressed else "fat_bright"
+        if (fov and spec.fov != fov) or (contrast and kind != contrast):
+            continue
+        subject = work / "family" / f"small-{seed:03d}"
+        truth = subject.parent / f"{subject.name}_truth"
+        if not (truth / "spec.json").is_file():
+            make_phantom(subject, seed=spec.seed, anatomy=spec.anatomy(),
+                         voxel_size=spec.voxel_size, snr=spec.snr, bias=spec.bias,
+                         positions=spec.positions, contrast=spec.contrast,
+                         fat_suppressed=spec.fat_suppressed,
+                         max_rotation_deg=spec.max_rotation_deg,
+                         max_translation_mm=spec.max_translation_mm, progress=False)
+            (truth / "spec.json").write_text(json.dumps(spec.to_dict()), encoding="utf-8")
+        subjects.append(subject)
+    return subjects
+
+
 def _met(row: dict, tissue: str, bound: float) -> bool:
     """The tissue's Dice meets its bound, or the tissue is not labelled (no figure)."""
     return not row["dice"].get(tissue, float("nan")) < bound
@@ -68,13 +113,20 @@ def main(argv=None) -> int:
                     help="bench/validate.py's work folder (its subjects/ are read)")
     ap.add_argument("--json", type=Path, default=ROOT / "bench" / "results" / "segment_suite.json")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--family", type=_seeds, default=None,
+                    help="render the family's specs of these seeds (0-59, or 5,12) instead")
+    ap.add_argument("--fov", choices=("torso", "coil", "slab"), default=None)
+    ap.add_argument("--contrast", choices=("fat_bright", "fat_suppressed"), default=None)
     args = ap.parse_args(argv)
     import SimpleITK as sitk
 
     sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(args.threads)
-    subjects = sorted(p for p in (args.work / "subjects").glob("*")
-                      if p.is_dir() and not p.name.endswith("_truth")
-                      and (p.parent / f"{p.name}_truth" / "spec.json").exists())
+    if args.family is not None:
+        subjects = render_family(args.family, args.work, fov=args.fov, contrast=args.contrast)
+    else:
+        subjects = sorted(p for p in (args.work / "subjects").glob("*")
+                          if p.is_dir() and not p.name.endswith("_truth")
+                          and (p.parent / f"{p.name}_truth" / "spec.json").exists())
     if not subjects:
         print(f"bench/segment_suite.py: no subjects under {args.work / 'subjects'}: run "
               "bench/validate.py --work with this folder first", file=sys.stderr)
@@ -103,7 +155,9 @@ def main(argv=None) -> int:
     args.json.parent.mkdir(parents=True, exist_ok=True)
     tmp = args.json.with_suffix(".tmp")
     tmp.write_text(json.dumps({"targets": TARGETS, "threads": args.threads,
-                               "summary": summary, "rows": rows}, indent=1), encoding="utf-8")
+                               "family": args.family, "fov": args.fov,
+                               "contrast": args.contrast, "summary": summary, "rows": rows},
+                              indent=1), encoding="utf-8")
     os.replace(tmp, args.json)
     return 0
 
