@@ -232,6 +232,63 @@ def test_the_auto_predictor_starts_each_step_from_the_smaller_residual():
     np.testing.assert_allclose(auto.u, secant.u, atol=1e-6 * np.abs(secant.u).max())
 
 
+def test_the_auto_predictor_follows_a_path_that_ends_without_equilibrium_once_more(
+        monkeypatch):
+    """Where the smaller-residual path ends in an error that carries a state (a fold where
+    the other friction branch goes on, seen on the 17k-tet suite mesh's softest corner in
+    supine), the whole solve runs once more from the extrapolation; the abandoned path is in
+    ``stats["abandoned_path"]`` and the wall time counts both. The first path's failure is
+    made here: its state at load 0.5, raised as a solver error."""
+    from dataclasses import replace
+
+    import mechanics.newton.stepping as stepping
+    from mechanics.newton.options import SolverError
+
+    mesh = hemisphere(60.0, 4)
+    model = build_model(mesh, NH, {"gravity": {"direction": (0, 0, -1)},
+                                   "fixed": {"node_set": "fixed"}})
+    real, calls = stepping._solve_path, []
+
+    def first_path_folds(model, X, u0, options, *, again=True):
+        calls.append(options.predictor)
+        st = real(model, X, u0, options)
+        if options.predictor == "auto" or not again:
+            raise SolverError("mechanics: no equilibrium beyond load 0.5 (made)",
+                              replace(st, converged=False, load=0.5))
+        return st
+
+    monkeypatch.setattr(stepping, "_solve_path", first_path_folds)
+    opts = SolverOptions(linear_solver="scipy", tol=1e-10, predictor="auto")
+    st = solve(model, options=opts)
+    assert calls == ["auto", "secant"] and st.converged
+    first = st.stats["abandoned_path"]
+    assert first["predictor"] == "auto" and first["load"] == 0.5
+    assert first["reason"] == "mechanics: no equilibrium beyond load 0.5 (made)"
+    assert first["newton"] > 0 and 0.0 < first["wall_s"] < st.wall_time
+    assert st.stats["wall_s"] == st.wall_time
+    secant = solve(model, options=replace(opts, predictor="secant"))
+    np.testing.assert_allclose(st.u, secant.u, atol=1e-9 * np.abs(secant.u).max())
+    # the second path fails too: its error carries the abandoned path
+    calls.clear()
+    monkeypatch.setattr(stepping, "_solve_path",
+                        lambda *a: first_path_folds(*a, again=False))
+    with pytest.raises(SolverError) as exc:
+        solve(model, options=opts)
+    assert calls == ["auto", "secant"]
+    assert exc.value.state.stats["abandoned_path"]["load"] == 0.5
+    # an error without a state (an unconstrained model, a time budget) is not retried
+    calls.clear()
+
+    def no_state(model, X, u0, options):
+        calls.append(options.predictor)
+        raise SolverError("mechanics: the caller's time budget is spent")
+
+    monkeypatch.setattr(stepping, "_solve_path", no_state)
+    with pytest.raises(SolverError, match="time budget"):
+        solve(model, options=opts)
+    assert calls == ["auto"]
+
+
 def test_pardiso_and_scipy_agree():
     pytest.importorskip("pypardiso")
     mesh = hemisphere(60.0, 4)
