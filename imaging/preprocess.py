@@ -333,29 +333,6 @@ def normalise(img: sitk.Image, *, background: float | None = None) -> sitk.Image
 BACKGROUND_OVER_FAT = "breastmodel_background_over_fat"
 
 
-def magnitude_level(fraction: float, background_over_fat: float) -> float:
-    """Normalised level of a tissue whose signal is ``fraction`` of the fat's, in a magnitude
-    image whose background sat at ``background_over_fat`` of the fat level before
-    :func:`normalise`. A magnitude image's background is Rician noise of zero signal (mean
-    sigma sqrt(pi / 2)), and a tissue's mean is the Rician mean of its signal: the
-    normalisation, which takes the background to 0, takes a dark tissue lower than its share
-    of the fat (at SNR 11, a muscle of 0.25 of the fat to 0.17: Gudbjartsson & Patz, Magn
-    Reson Med 1995, on the Rician bias of magnitude images)."""
-    from scipy.special import i0e, i1e
-
-    b = float(background_over_fat)
-    if b <= 0.0:
-        return float(fraction)
-    sigma = b * np.sqrt(2.0 / np.pi)
-
-    def rician_mean(signal: float) -> float:
-        nu = signal**2 / (2.0 * sigma**2)
-        return float(sigma * np.sqrt(np.pi / 2.0)
-                     * ((1.0 + nu) * i0e(nu / 2.0) + nu * i1e(nu / 2.0)))
-
-    return (rician_mean(fraction) - b) / (rician_mean(1.0) - b)
-
-
 def preprocess(
     img: sitk.Image,
     *,

@@ -8,8 +8,13 @@ import SimpleITK as sitk
 from scipy import ndimage
 
 from imaging.levelset import levelset_refine
-from imaging.preprocess import BACKGROUND_OVER_FAT, magnitude_level
-from imaging.segment_contrast import _require_body, _require_cnr, contrast_to_noise
+from imaging.preprocess import BACKGROUND_OVER_FAT
+from imaging.segment_contrast import (
+    _require_body,
+    _require_cnr,
+    contrast_to_noise,
+    magnitude_level,
+)
 from imaging.segment_regions import (
     STAGE,
     SegmentationError,
@@ -80,7 +85,7 @@ def _levels_and_dark_regions(a, sp, *, skin_level, min_region_mm3, muscle_min_mm
     """Tissue levels (fractions of fat) and the dark regions they give, estimated
     :data:`LEVEL_PASSES` times: from initial levels (the thorax's and muscle's nominal shares
     of the fat, where the normalised magnitude image shows them:
-    :func:`imaging.preprocess.magnitude_level` of the background's level before
+    :func:`imaging.segment_contrast.magnitude_level` of the background's level before
     normalisation), then each time from the levels the regions before gave.
 
     Returns
@@ -124,7 +129,7 @@ def _levels_and_dark_regions(a, sp, *, skin_level, min_region_mm3, muscle_min_mm
 
 
 #: Otsu's effectiveness (between-class over total variance) above which intensities are two
-#: modes: a single Gaussian gives 2 / pi = 0.64 at any split.
+#: modes: a single Gaussian gives 2 / pi = 0.64 at its best split.
 BIMODAL_EFFECTIVENESS = 0.75
 
 

@@ -10,12 +10,12 @@ from imaging.preprocess import (
     body_box,
     check_volume,
     denoise,
-    magnitude_level,
     n4_correct,
     normalise,
     preprocess,
     resample_isotropic,
 )
+from imaging.segment_contrast import magnitude_level
 
 
 def _block(shape=(40, 48, 56), spacing=(2.0, 2.0, 2.0)):
