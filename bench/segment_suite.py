@@ -13,7 +13,7 @@ them is flagged by the segmentation's own confidence (never silently wrong).
 
 Beyond the suite's subjects, ``--family`` renders the phantom family's specs of the given
 seeds (all three positions, with their rigid motions only: no FE truth is needed to score a
-segmentation, and the FEBio-deformed scans give the same figures within about 0.01),
+segmentation; small-005's FEBio-deformed scans score within 0.01 of its rigid ones),
 optionally only one field of view or contrast, under ``--work``/family::
 
     .venv/bin/python bench/segment_suite.py --family 0-59 --fov slab --contrast fat_bright \
