@@ -324,7 +324,7 @@ def normalise(img: sitk.Image, *, background: float | None = None) -> sitk.Image
     if hi <= lo:
         raise ValueError(f"{STAGE}: volume has no contrast (foreground {hi} <= background {lo})")
     out = sitk.Cast((f - lo) / (hi - lo), sitk.sitkFloat32)
-    out.SetMetaData(BACKGROUND_OVER_FAT, repr(max(lo, 0.0) / hi))
+    out.SetMetaData(BACKGROUND_OVER_FAT, repr(max(lo, 0.0) / hi if hi > 0 else 0.0))
     return out
 
 

@@ -143,8 +143,8 @@ def _darker_mode(values: np.ndarray) -> float:
     from skimage.filters import threshold_otsu
 
     v = np.asarray(values, float)
-    if v.size < 2 or np.ptp(v) == 0:
-        return float(np.median(v)) if v.size else 0.0
+    if np.ptp(v) == 0:  # one value (the caller's start is never empty)
+        return float(np.median(v))
     t = float(threshold_otsu(v))
     low, high = v[v <= t], v[v > t]
     if low.size == 0 or high.size == 0:
