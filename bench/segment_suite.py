@@ -39,6 +39,7 @@ def segment_subject(subject: Path) -> list[dict]:
     from imaging.io import read_volume
     from imaging.qa import dice
     from imaging.segment import segment_volume
+    from imaging.segment_contrast import contrast_disagreement
 
     truth = subject.parent / f"{subject.name}_truth"
     spec = json.loads((truth / "spec.json").read_text(encoding="utf-8"))
@@ -58,6 +59,10 @@ def segment_subject(subject: Path) -> list[dict]:
                      "agreement": {k: round(float(v), 4)
                                    for k, v in res.confidence["agreement"].items()},
                      "notes": list(res.notes)})
+    said = contrast_disagreement({r["position"]: r["detected"] for r in rows})
+    for r in rows if said else ():  # as the pipeline marks them (read_confidences)
+        r["confident"] = False
+        r["notes"].append(said)
     return rows
 
 

@@ -80,7 +80,7 @@ def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[
     import SimpleITK as sitk
 
     from breastmodel.pipeline.config import given_labels
-    from breastmodel.pipeline.segment import read_confidence
+    from breastmodel.pipeline.segment import read_confidences
     from imaging.io import read_volume
     from imaging.qa import tissue_volumes_ml
 
@@ -89,6 +89,7 @@ def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[
              "labelled tissue; radiological display, axes in mm).</p>"]
     rows = []
     seg_dirs, vols = images.get("segment_dirs") or {}, images.get("input_volumes") or {}
+    confs = read_confidences({p: Path(f) for p, f in seg_dirs.items()})
     for pos in images["labels"]:
         lab_path = Path(seg_dirs[pos]) / f"{pos}_labels.nii.gz" if pos in seg_dirs else None
         if lab_path is None or not lab_path.is_file() or pos not in vols:
@@ -97,7 +98,7 @@ def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[
         img = read_volume(vols[pos])  # a file or a DICOM series folder
         v = tissue_volumes_ml(labels)
         given = given_labels(segment, pos)
-        conf = read_confidence(lab_path.parent, pos)
+        conf = confs.get(pos) or {}
         rows.append([pos, "segmented" if given is None else f"given: {given}",
                      *(v.get(k) for k in ("breast", "muscle", "gland")),
                      " / ".join(f"{conf['agreement'][k]:.3f}" for k in ("body", "muscle")

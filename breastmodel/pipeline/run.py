@@ -110,6 +110,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
         breast in a segmentation...), naming the file and the problem.
     """
     from breastmodel.config import write_provenance
+    from breastmodel.pipeline.segment import contrast_doubt
     from imaging.markups import markups_files
     from imaging.subject import SubjectError, read_subject
     from meshing.background import mesh_in_background
@@ -138,6 +139,8 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
             if pos == ref and not R.done("mesh", mesh_cfg, [seg_keys[ref]]):
                 job = background.enter_context(mesh_in_background(
                     _labels(seg_dirs, ref), **mesh_options(cfg)))
+        if said := contrast_doubt(seg_dirs):
+            log.warning("segment: %s", said)
         sub_files = [subject.root / "subject.toml"] + [
             subject.positions[p].volume_path for p in positions]
         if (subject.root / "fiducials.csv").is_file():

@@ -160,11 +160,36 @@ def read_confidence(out: Path, position: str) -> dict[str, Any]:
     """A position's confidence from ``out/segmentation.json`` (:func:`update_summary`): its
     regions' agreement, the warnings, ``confident``; {} where none was written (a label map
     given, not segmented)."""
+    return dict(_entry(out, position).get("confidence") or {})
+
+
+def _entry(out: Path, position: str) -> dict[str, Any]:
+    """A position's summary in ``out/segmentation.json``; {} where none was written."""
     path = Path(out) / "segmentation.json"
     if not path.is_file():
         return {}
-    entry = json.loads(path.read_text()).get("positions", {}).get(position) or {}
-    return dict(entry.get("confidence") or {})
+    return json.loads(path.read_text()).get("positions", {}).get(position) or {}
+
+
+def contrast_doubt(seg_dirs: Mapping[str, Path]) -> str:
+    """:func:`imaging.segment_contrast.contrast_disagreement` of the positions segmented in
+    ``seg_dirs`` (``{position: its folder}``): "" where their scans read alike."""
+    from imaging.segment_contrast import contrast_disagreement
+
+    read = {pos: _entry(folder, pos).get("contrast") for pos, folder in seg_dirs.items()}
+    return contrast_disagreement({pos: c for pos, c in read.items() if c})
+
+
+def read_confidences(seg_dirs: Mapping[str, Path]) -> dict[str, dict[str, Any]]:
+    """Each position's :func:`read_confidence` from its folder in ``seg_dirs``; where the
+    segmented positions' scans read different contrasts (:func:`contrast_doubt`), each of
+    them is not confident and says so."""
+    confs = {pos: read_confidence(folder, pos) for pos, folder in seg_dirs.items()}
+    said = contrast_doubt(seg_dirs)
+    for conf in confs.values():
+        if said and conf:
+            conf.update(confident=False, warnings=[*(conf.get("warnings") or []), said])
+    return confs
 
 
 def update_summary(out: Path, position: str, summary: Mapping[str, Any]) -> None:
@@ -221,4 +246,10 @@ def segment_subject(
         if "dice" in summary:
             log.info("segment: %s Dice %s", name,
                      {k: round(v, 4) for k, v in summary["dice"].items()})
+    said = contrast_doubt({name: out for name in results})
+    if said:  # every position's confidence says so, in segmentation.json too
+        log.warning("segment: %s", said)
+        for name, conf in read_confidences({name: out for name in results}).items():
+            results[name]["confidence"] = conf
+            update_summary(out, name, results[name])
     return results

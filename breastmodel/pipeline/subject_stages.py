@@ -95,11 +95,10 @@ def register_stage(subject, seg_dirs: Mapping[str, Path], cfg: Mapping[str, Any]
 def doubtful_segmentations(seg_dirs: Mapping[str, Path]) -> str:
     """The positions whose segmentation doubted itself (the confidence its stage folder
     keeps), as one sentence; "" where none did (or the label maps were given)."""
-    from breastmodel.pipeline.segment import read_confidence
+    from breastmodel.pipeline.segment import read_confidences
 
     said = []
-    for pos, folder in seg_dirs.items():
-        conf = read_confidence(folder, pos)
+    for pos, conf in read_confidences(seg_dirs).items():
         if conf and not conf.get("confident", True):
             said.append(f"{pos!r} ({'; '.join(conf.get('warnings') or ['not confident'])})")
     return "; ".join(said)

@@ -85,3 +85,57 @@ def test_a_registration_that_stops_names_the_segmentation_that_doubted_itself(tm
     d2.mkdir()
     with pytest.raises(StageError, match=r"flagged$"):
         register_stage(object(), seg_dirs, {"register": {}})(d2)
+
+
+def test_scans_of_one_subject_that_read_different_contrasts_are_each_doubted(tmp_path,
+                                                                             monkeypatch,
+                                                                             caplog):
+    """On the phantom family (60 subjects, one protocol each) every subject whose scans read
+    different contrasts held a misread (small-040: prone and tilted read fat suppressed, its
+    T1 supine fat bright; the two misreads were confident): each position of such a subject
+    is doubted, by the run, the `segment` command and a registration that stops."""
+    import SimpleITK as sitk
+    from mri_synth import write_subject
+
+    import breastmodel.pipeline.segment as segment
+    from imaging.segment_contrast import contrast_disagreement
+
+    assert contrast_disagreement({"prone": "fat_bright", "supine": "fat_bright"}) == ""
+    said = contrast_disagreement({"prone": "fat_suppressed", "supine": "fat_bright",
+                                  "supine_tilted_15": "fat_suppressed"})
+    assert "(fat_bright: supine; fat_suppressed: prone, supine_tilted_15)" in said
+    assert "declare [segment] contrast" in said
+
+    read = {"prone": "fat_suppressed", "supine": "fat_bright"}
+    img = sitk.Image(8, 8, 8, sitk.sitkFloat32)
+    subject = write_subject(tmp_path / "subject", {p: (img, (0.0, 0.0, -1.0)) for p in read})
+
+    def segmented(subject, position, out, **kwargs):
+        return {"contrast": read[position], "notes": [],
+                "confidence": {"agreement": {"body": 0.99, "muscle": 0.98}, "warnings": [],
+                               "confident": True}}
+
+    monkeypatch.setattr(segment, "segment_position", segmented)
+    out = tmp_path / "seg"
+    with caplog.at_level(logging.WARNING, logger="breastmodel.segment"):
+        results = segment.segment_subject(subject, out)
+    assert [r.getMessage() for r in caplog.records] == [
+        "segment: the subject's scans read different contrasts (fat_bright: supine; "
+        "fat_suppressed: prone): one is misread unless they were acquired so; if they were "
+        "acquired alike, declare [segment] contrast"]
+    for pos in read:  # the command's segmentation.json says it of every position
+        conf = segment.read_confidence(out, pos)
+        assert results[pos]["confidence"] == conf
+        assert conf["confident"] is False and conf["warnings"][-1].startswith("the subject's")
+    # the run's stage folders, one per position: each position doubted, as a stopping
+    # registration would name them
+    seg_dirs = {}
+    for pos in read:
+        seg_dirs[pos] = tmp_path / f"stage_{pos}"
+        seg_dirs[pos].mkdir()
+        update_summary(seg_dirs[pos], pos, segmented(None, pos, None))
+    doubt = doubtful_segmentations(seg_dirs)
+    assert doubt.startswith("'prone' (the subject's scans") and "; 'supine' (" in doubt
+    update_summary(seg_dirs["prone"], "prone", {**segmented(None, "prone", None),
+                                                "contrast": "fat_bright"})
+    assert doubtful_segmentations(seg_dirs) == ""
