@@ -187,7 +187,7 @@ def read_confidences(seg_dirs: Mapping[str, Path]) -> dict[str, dict[str, Any]]:
     confs = {pos: read_confidence(folder, pos) for pos, folder in seg_dirs.items()}
     said = contrast_doubt(seg_dirs)
     for conf in confs.values():
-        if said and conf:
+        if said and conf and said not in (conf.get("warnings") or []):  # said once
             conf.update(confident=False, warnings=[*(conf.get("warnings") or []), said])
     return confs
 

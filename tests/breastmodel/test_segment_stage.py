@@ -123,10 +123,11 @@ def test_scans_of_one_subject_that_read_different_contrasts_are_each_doubted(tmp
         "segment: the subject's scans read different contrasts (fat_bright: supine; "
         "fat_suppressed: prone): one is misread unless they were acquired so; if they were "
         "acquired alike, declare [segment] contrast"]
-    for pos in read:  # the command's segmentation.json says it of every position
+    for pos in read:  # the command's segmentation.json says it of every position, once
         conf = segment.read_confidence(out, pos)
         assert results[pos]["confidence"] == conf
         assert conf["confident"] is False and conf["warnings"][-1].startswith("the subject's")
+        assert segment.read_confidences({p: out for p in read})[pos] == conf
     # the run's stage folders, one per position: each position doubted, as a stopping
     # registration would name them
     seg_dirs = {}
