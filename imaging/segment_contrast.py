@@ -270,9 +270,10 @@ def contrast_disagreement(contrasts: Mapping[str, str]) -> str:
     :func:`detect_contrast` read it) read the same contrast, else one sentence that says
     which read which. One subject's scans come from one protocol as a rule, so scans that
     read differently hold a misread: on the phantom family's 180 scans (60 subjects, one
-    contrast each; ``bench/segment_suite.py --family 0-59``) the 4 subjects whose scans read
-    differently held 7 of the 13 misreads, 4 of them confident; the other 6 misreads are two
-    subjects read wrong in every position, which this cannot see."""
+    contrast each; ``bench/contrast_family.py --family 0-59``) the 3 subjects whose scans
+    read differently hold 5 of the 8 misreads (2 of them segmented confidently, small-040
+    prone and tilted); the other 3 are one subject read wrong in every position (small-044),
+    which this cannot see."""
     kinds = sorted(set(contrasts.values()))
     if len(kinds) < 2:
         return ""
