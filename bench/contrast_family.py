@@ -27,15 +27,20 @@ from segment_suite import ROOT, _seeds, render_family  # noqa: E402
 def read_scan(scan: Path) -> tuple[str, dict]:
     """The contrast read on ``scan`` preprocessed as :func:`imaging.segment.segment_volume`
     preprocesses it by default, and the numbers that decided it."""
+    import inspect
+
     import numpy as np
     import SimpleITK as sitk
 
     from imaging.io import read_volume
+    from imaging.segment import segment_volume
     from imaging.segment_contrast import detect_contrast, prepare_volume
 
-    pre = prepare_volume(read_volume(scan), [], crop=True, n4=True, n4_shrink=4,
-                         n4_cache=None, name=str(scan), isotropic_mm=None,
-                         denoise_iterations="auto", denoise_method="gradient")[0]
+    keys = ("crop", "n4", "n4_shrink", "n4_cache", "isotropic_mm", "denoise_iterations",
+            "denoise_method")
+    default = inspect.signature(segment_volume).parameters
+    pre = prepare_volume(read_volume(scan), [], name=str(scan),
+                         **{k: default[k].default for k in keys})[0]
     return detect_contrast(sitk.GetArrayFromImage(pre),
                            np.asarray(pre.GetSpacing(), float)[::-1],
                            direction=pre.GetDirection())

@@ -80,8 +80,7 @@ def render_family(seeds, work: Path, *, fov: str | None = None,
     """Subject folders of the family's small specs of ``seeds`` (only ``fov`` and
     ``contrast``, "fat_bright" or "fat_suppressed", where given), rendered with rigid
     motion only under ``work``/family, each with its truth's ``spec.json`` (made once)."""
-    from breastmodel.phantom import make_phantom
-    from breastmodel.phantom.family import draw_spec
+    from breastmodel.phantom.family import draw_spec, make_rigid_subject
 
     subjects = []
     for seed in seeds:
@@ -90,15 +89,8 @@ def render_family(seeds, work: Path, *, fov: str | None = None,
         if (fov and spec.fov != fov) or (contrast and kind != contrast):
             continue
         subject = work / "family" / f"small-{seed:03d}"
-        truth = subject.parent / f"{subject.name}_truth"
-        if not (truth / "spec.json").is_file():
-            make_phantom(subject, seed=spec.seed, anatomy=spec.anatomy(),
-                         voxel_size=spec.voxel_size, snr=spec.snr, bias=spec.bias,
-                         positions=spec.positions, contrast=spec.contrast,
-                         fat_suppressed=spec.fat_suppressed,
-                         max_rotation_deg=spec.max_rotation_deg,
-                         max_translation_mm=spec.max_translation_mm, progress=False)
-            (truth / "spec.json").write_text(json.dumps(spec.to_dict()), encoding="utf-8")
+        if not (subject.parent / f"{subject.name}_truth" / "spec.json").is_file():
+            make_rigid_subject(spec, subject)
         subjects.append(subject)
     return subjects
 

@@ -164,16 +164,11 @@ def render_family_supine(seed: int, root, *, snr: float | None = None,
     (``draw_spec(seed, size="small")``) in ``position`` (supine unless given), rendered under
     ``root`` by the renderer ``make_subject`` uses, with rigid motion only (no FE truth is
     needed to score a segmentation); at the drawn SNR and bias unless given."""
-    from breastmodel.phantom import make_phantom
-    from breastmodel.phantom.family import draw_spec
+    from breastmodel.phantom.family import draw_spec, make_rigid_subject
     from imaging.io import read_volume
 
     spec = draw_spec(seed, size="small")
     out = Path(root) / "subject"
-    make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
-                 snr=snr or spec.snr, bias=spec.bias if bias is None else bias,
-                 positions=(position,), contrast=spec.contrast,
-                 fat_suppressed=spec.fat_suppressed, max_rotation_deg=spec.max_rotation_deg,
-                 max_translation_mm=spec.max_translation_mm, progress=False)
+    make_rigid_subject(spec, out, positions=(position,), snr=snr or None, bias=bias)
     return (spec, read_volume(out / f"{position}.nii.gz"),
             read_volume(Path(root) / "subject_truth" / f"{position}_labels.nii.gz"))

@@ -220,3 +220,23 @@ def make_subject(spec: SubjectSpec, out: str | Path, *, truth_solver: str = "feb
     write_json(truth / "timings.json", timings)
     log.info("phantom: subject %s made in %.1f s", spec.name, timings["total"])
     return Path(out)
+
+
+def make_rigid_subject(spec: SubjectSpec, out: str | Path, *,
+                       positions: tuple[str, ...] | None = None, snr: float | None = None,
+                       bias: float | None = None) -> Path:
+    """Write ``spec``'s subject folder ``out`` and ``<out>_truth`` with rigid motions only
+    (:func:`~breastmodel.phantom.writer.make_phantom`: no FE truth, for scoring a
+    segmentation), its truth folder holding ``spec.json``; every position of the spec, its
+    SNR and bias unless given."""
+    from breastmodel.config import write_atomic
+    from breastmodel.phantom.writer import make_phantom, truth_folder
+
+    make_phantom(out, seed=spec.seed, anatomy=spec.anatomy(), voxel_size=spec.voxel_size,
+                 snr=spec.snr if snr is None else snr, bias=spec.bias if bias is None else bias,
+                 positions=spec.positions if positions is None else positions,
+                 contrast=spec.contrast, fat_suppressed=spec.fat_suppressed,
+                 max_rotation_deg=spec.max_rotation_deg,
+                 max_translation_mm=spec.max_translation_mm, progress=False)
+    write_atomic(truth_folder(out) / "spec.json", spec.to_json() + "\n")
+    return Path(out)

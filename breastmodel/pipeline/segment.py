@@ -174,22 +174,33 @@ def _entry(out: Path, position: str) -> dict[str, Any]:
 def contrast_doubt(seg_dirs: Mapping[str, Path]) -> str:
     """:func:`imaging.segment_contrast.contrast_disagreement` of the positions segmented in
     ``seg_dirs`` (``{position: its folder}``): "" where their scans read alike."""
+    return _contrast_doubt({pos: _entry(folder, pos) for pos, folder in seg_dirs.items()})
+
+
+def _contrast_doubt(entries: Mapping[str, Mapping[str, Any]]) -> str:
+    """:func:`contrast_doubt` of the positions' summaries ``entries``."""
     from imaging.segment_contrast import contrast_disagreement
 
-    read = {pos: _entry(folder, pos).get("contrast") for pos, folder in seg_dirs.items()}
-    return contrast_disagreement({pos: c for pos, c in read.items() if c})
+    return contrast_disagreement({pos: e["contrast"] for pos, e in entries.items()
+                                  if e.get("contrast")})
+
+
+def _doubted(conf: Mapping[str, Any], said: str) -> dict[str, Any]:
+    """A segmented position's confidence ``conf`` not confident and saying ``said`` (once);
+    as it is where nothing is said or nothing was segmented."""
+    warnings = list(conf.get("warnings") or [])
+    if not said or not conf or said in warnings:
+        return dict(conf)
+    return {**conf, "confident": False, "warnings": [*warnings, said]}
 
 
 def read_confidences(seg_dirs: Mapping[str, Path]) -> dict[str, dict[str, Any]]:
     """Each position's :func:`read_confidence` from its folder in ``seg_dirs``; where the
     segmented positions' scans read different contrasts (:func:`contrast_doubt`), each of
     them is not confident and says so."""
-    confs = {pos: read_confidence(folder, pos) for pos, folder in seg_dirs.items()}
-    said = contrast_doubt(seg_dirs)
-    for conf in confs.values():
-        if said and conf and said not in (conf.get("warnings") or []):  # said once
-            conf.update(confident=False, warnings=[*(conf.get("warnings") or []), said])
-    return confs
+    entries = {pos: _entry(folder, pos) for pos, folder in seg_dirs.items()}
+    said = _contrast_doubt(entries)
+    return {pos: _doubted(e.get("confidence") or {}, said) for pos, e in entries.items()}
 
 
 def update_summary(out: Path, position: str, summary: Mapping[str, Any]) -> None:
@@ -246,10 +257,10 @@ def segment_subject(
         if "dice" in summary:
             log.info("segment: %s Dice %s", name,
                      {k: round(v, 4) for k, v in summary["dice"].items()})
-    said = contrast_doubt({name: out for name in results})
+    said = _contrast_doubt(results)
     if said:  # every position's confidence says so, in segmentation.json too
         log.warning("segment: %s", said)
-        for name, conf in read_confidences({name: out for name in results}).items():
-            results[name]["confidence"] = conf
-            update_summary(out, name, results[name])
+        for name, summary in results.items():
+            summary["confidence"] = _doubted(summary["confidence"], said)
+            update_summary(out, name, summary)
     return results
