@@ -7,6 +7,12 @@ the transform the stage uses, the correlation's (refined) and the markers' (fidu
     python bench/register_suite.py --family '{"snr": 10000, "bias": 0}' --work W2 \
         --cache bench/validation_work/truth_cache                 # clean images, same truth
 
+``--seed-study K`` measures the refinement's sampling instead: each position registered
+once per sampling seed (``[register] repeats = 1``, seeds 20211 ... 20211 + K - 1, the
+pipeline arm on its first run's segmentation), with each seed's chest-wall TRE (max), their
+mean, and the TRE of the mean transform of the first 3 and of all K seeds
+(:func:`registration.repeats.mean_transform`): what ``repeats`` buys on this suite.
+
 ``--family`` overrides fields of the drawn subjects (``breastmodel.phantom.family.draw_spec``):
 with the noise and the bias field taken out (the same anatomy, motions and FEBio truth), what
 is left of the TRE is the anatomy's own deformation between positions and the partial-volume
@@ -45,7 +51,7 @@ def position_row(entry: dict, truth_tfm, points: np.ndarray) -> dict:
     from registration.qa import target_registration_error
     from registration.transforms import matrix_to_transform
 
-    row = {"status": entry["status"]}
+    row = {"status": entry["status"], "seed_spread_mm": entry.get("seed_spread_mm")}
     checks = entry.get("checks") or {}
     for key in ("chest_wall_shift_mm", "expected_tre_mm", "chest_wall_null_mm"):
         if key in checks:                   # what the fallback decided on (rigid._checked)
@@ -76,6 +82,82 @@ def register_one(name: str, make, work: Path, arm: str, config: dict | None = No
             for p, e in rep["positions"].items()}
 
 
+def seed_study(name: str, make, work: Path, arm: str, k: int,
+               config: dict | None = None) -> dict:
+    """Every position of ``name`` registered once per sampling seed (one repeat each):
+    {position: {"seeds": [max TRE], "mean_of_seeds", "mean_transform_3", "mean_transform"}}."""
+    from breastmodel.pipeline.register import _truth_points, register_subject, truth_transform
+    from registration.qa import target_registration_error
+    from registration.repeats import mean_transform
+    from registration.transforms import matrix_to_transform
+
+    subject, truth, _ = make(name, work / "subjects" / name)
+    base = work / "seed_study" / arm / name
+    seg = truth if arm == "truth_labels" else None
+    reps = []
+    for s in range(20211, 20211 + k):
+        out = base / str(s)
+        reps.append(register_subject(subject, out, truth=truth, seg_dir=seg, config={
+            "require_fiducials": False, **(config or {}), "repeats": 1, "seed": s}))
+        seg = seg or out / "segmentation"
+    ref = reps[0]["reference"]
+    points = _truth_points(truth, ref)
+    rows = {}
+    for p in reps[0]["positions"]:
+        t = truth_transform(truth, ref, p)
+        tfms = [matrix_to_transform(np.asarray(r["positions"][p]["refined_matrix"]))
+                for r in reps]
+
+        def tre(x, t=t):
+            return round(float(target_registration_error(x, t, points).max()), 3)
+
+        each = [tre(x) for x in tfms]
+        centre = np.zeros(3)
+        rows[p] = {"seeds": each, "mean_of_seeds": round(float(np.mean(each)), 3),
+                   "mean_transform_3": tre(mean_transform(tfms[:3], centre)),
+                   "mean_transform": tre(mean_transform(tfms, centre))}
+    return rows
+
+
+def _spread(s: dict | None) -> str:
+    """The repeats' standard error on the chest wall (mm), or "-"."""
+    return "-" if not s else f"{s['standard_error']:.2f}"
+
+
+def _seed_study_main(args, make, extra: dict, family: dict) -> int:
+    """``--seed-study``: the table of each position's single-seed TREs and their means, a
+    summary over every registration, and the JSON."""
+    from breastmodel.config import write_json
+
+    k, rows = args.seed_study, []
+    print(f"{'subject':10s} {'arm':12s} {'position':18s} max TRE (mm): each of {k} seeds | "
+          "their mean | mean transform of 3 | of all")
+    for seed in (int(s) for s in args.seeds.split(",")):
+        name = f"{args.size}-{seed:03d}"
+        for arm in args.arms.split(","):
+            for pos, r in seed_study(name, make, args.work, arm, k, extra).items():
+                rows.append({"subject": name, "arm": arm, "position": pos, **r})
+                print(f"{name:10s} {arm:12s} {pos:18s} "
+                      + " ".join(f"{v:.2f}" for v in r["seeds"])
+                      + f" | {r['mean_of_seeds']:.2f} | {r['mean_transform_3']:.2f} | "
+                      f"{r['mean_transform']:.2f}", flush=True)
+    summary = {key: round(float(np.mean([r[key] for r in rows])), 3)
+               for key in ("mean_of_seeds", "mean_transform_3", "mean_transform")}
+    summary["mean_transform_no_worse"] = sum(r["mean_transform"] <= r["mean_of_seeds"]
+                                             for r in rows)
+    summary["registrations"] = len(rows)
+    print("over every registration, mean of the max TRE (mm): one seed "
+          f"{summary['mean_of_seeds']:.3f}, the mean transform of 3 seeds "
+          f"{summary['mean_transform_3']:.3f}, of {k} {summary['mean_transform']:.3f}; the mean "
+          f"transform no worse than the seeds' mean on {summary['mean_transform_no_worse']} "
+          f"of {len(rows)}")
+    write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                           "size": args.size, "register": extra, "family": family,
+                           "seed_study": k, "summary": summary, "rows": rows})
+    print(f"wrote {args.json}")
+    return 0
+
+
 def _cell(t: dict | None) -> str:
     return "-" if t is None else f"{t['mean']:.2f}/{t['max']:.2f}"
 
@@ -93,6 +175,8 @@ def main(argv=None) -> int:
                     help="truth cache (default WORK/truth_cache)")
     ap.add_argument("--family", default="{}",
                     help='JSON: fields of the drawn subjects, e.g. \'{"snr": 10000, "bias": 0}\'')
+    ap.add_argument("--seed-study", type=int, default=0, metavar="K",
+                    help="register each position once per sampling seed, K seeds (see above)")
     ap.add_argument("--json", type=Path,
                     default=ROOT / "bench" / "results" / "register_suite.json")
     args = ap.parse_args(argv)
@@ -106,9 +190,12 @@ def main(argv=None) -> int:
     family = json.loads(args.family)
     make = family_maker(size=args.size, febio=str(find_febio(args.febio)),
                         cache=args.cache or args.work / "truth_cache", **family)
+    if args.seed_study:
+        return _seed_study_main(args, make, extra, family)
     rows = []
     print(f"{'subject':10s} {'arm':12s} {'position':18s} {'status':10s} "
-          f"{'TRE used':>12s} {'refined':>12s} {'fiducials':>12s}   (mean/max mm)")
+          f"{'TRE used':>12s} {'refined':>12s} {'fiducials':>12s} {'seeds se':>10s}"
+          "   (mean/max mm)")
     for seed in (int(s) for s in args.seeds.split(",")):
         name = f"{args.size}-{seed:03d}"
         for arm in args.arms.split(","):
@@ -123,7 +210,8 @@ def main(argv=None) -> int:
                 rows.append({"subject": name, "arm": arm, "position": pos, **r})
                 print(f"{name:10s} {arm:12s} {pos:18s} {r['status']:10s} "
                       f"{_cell(r['used']):>12s} {_cell(r['refined']):>12s} "
-                      f"{_cell(r['fiducials']):>12s}", flush=True)
+                      f"{_cell(r['fiducials']):>12s} {_spread(r['seed_spread_mm']):>10s}",
+                      flush=True)
     write_json(args.json, {"date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                            "size": args.size, "register": extra, "family": family,
                            "rows": rows})

@@ -107,7 +107,19 @@ def refine_rigid(
     -------
     transform, final metric value
     """
-    _check_seed(seed)
+    return refine_rigid_seeds(fixed, moving, initial, (seed,), fixed_mask=fixed_mask,
+                              shrink=shrink, smooth_mm=smooth_mm, iterations=iterations,
+                              sampling=sampling, learning_rate_mm=learning_rate_mm,
+                              crop=crop, threads=threads)[0]
+
+
+def refine_rigid_seeds(fixed, moving, initial, seeds, *, fixed_mask=None, shrink=(4, 2, 1),
+                       smooth_mm=(2.0, 1.0, 0.0), iterations=50, sampling=0.1,
+                       learning_rate_mm=0.5, crop=True, threads=1) -> list:
+    """:func:`refine_rigid` from one ``initial`` once per sampling seed of ``seeds``, the
+    cropped and smoothed levels made once for all: [(transform, metric)] in their order."""
+    for seed in seeds:
+        _check_seed(seed)
     if len(shrink) != len(smooth_mm) or not shrink:
         raise ValueError(f"{STAGE}: shrink {shrink} and smooth_mm {smooth_mm} need one entry "
                          "per level")
@@ -116,14 +128,18 @@ def refine_rigid(
     if fixed_mask is not None and crop:
         fixed, moving = _crop_to_mask(fixed, moving, fixed_mask, initial, shrink=shrink,
                                       smooth_mm=smooth_mm)
-    tfm = sitk.Euler3DTransform(initial)
-    metric = float("nan")
-    for s, sigma in zip(shrink, smooth_mm):
-        tfm, metric = _refine_level(
-            _pyramid_level(fixed, s, sigma), _pyramid_level(moving, s, sigma), tfm,
-            fixed_mask=fixed_mask, shrink=s, iterations=iterations, sampling=sampling,
-            learning_rate_mm=learning_rate_mm, seed=seed, threads=threads)
-    return tfm, float(metric)
+    levels = [(s, _pyramid_level(fixed, s, sigma), _pyramid_level(moving, s, sigma))
+              for s, sigma in zip(shrink, smooth_mm)]
+    out = []
+    for seed in seeds:
+        tfm, metric = sitk.Euler3DTransform(initial), float("nan")
+        for s, f, m in levels:
+            tfm, metric = _refine_level(
+                f, m, tfm, fixed_mask=fixed_mask, shrink=s, iterations=iterations,
+                sampling=sampling, learning_rate_mm=learning_rate_mm, seed=seed,
+                threads=threads)
+        out.append((tfm, float(metric)))
+    return out
 
 
 def _crop_to_mask(fixed, moving, fixed_mask, initial, *, shrink, smooth_mm):

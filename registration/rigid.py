@@ -15,12 +15,25 @@ from dataclasses import dataclass, field
 import numpy as np
 import SimpleITK as sitk
 
-from registration.checks import check_registration, mask_points, predicted_tre
+from registration.checks import (
+    check_registration,
+    choose_checked,
+    mask_points,
+    predicted_tre,
+)
 from registration.directions import blend_loose, loose_directions
 from registration.initialise import _to_euler, landmark_transform, moments_transform
 from registration.masks import add_balls, chest_wall_mask
 from registration.qa import fiducial_residuals
-from registration.refine import DEFAULT_SEED, _check_seed, refine_rigid
+from registration.refine import DEFAULT_SEED, refine_rigid, refine_rigid_seeds
+from registration.repeats import (
+    REPEATS,
+    SPREAD_WARN_MM,
+    mean_transform,
+    point_errors,
+    repeat_seeds,
+    seed_spread,
+)
 from registration.transforms import STAGE
 
 __all__ = [
@@ -30,12 +43,6 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
-
-#: A refined transform that fails the fiducial check gives way to the fiducial-only one only
-#: where it moves the least-moved marker by at least this share of the most-moved one's
-#: shift (see :func:`_checked`).
-COHERENT_SHIFT = 0.5
-
 
 @dataclass(frozen=True)
 class RigidResult:
@@ -67,7 +74,10 @@ class RigidResult:
     fiducial_transform : SimpleITK.Euler3DTransform or None
         The fiducial-only solution.
     refined_transform : SimpleITK.Transform or None
-        The correlation's answer, whether or not it is ``transform``.
+        The correlation's answer (the mean of its repeats), whether or not it is
+        ``transform``.
+    spread : dict
+        The repeats' scatter on the chest wall (:func:`registration.repeats.seed_spread`).
     """
 
     transform: sitk.Transform
@@ -80,6 +90,7 @@ class RigidResult:
     checks: dict = field(default_factory=dict)
     fiducial_transform: sitk.Transform | None = None
     refined_transform: sitk.Transform | None = None
+    spread: dict = field(default_factory=dict)
 
 
 def register_rigid(
@@ -92,6 +103,7 @@ def register_rigid(
     iterations: int = 50, sampling: float = 0.1, learning_rate_mm: float = 0.5,
     fine_levels: int = 2, seed: int = DEFAULT_SEED, threads: int = 1,
     fiducial_fallback: bool = True, base_mask: sitk.Image | None = None,
+    repeats: int = REPEATS, spread_warn_mm: float = SPREAD_WARN_MM,
 ) -> RigidResult:
     """Register ``moving`` onto ``fixed`` (the reference) rigidly, then check the result
     against the fiducial-only solution.
@@ -102,47 +114,44 @@ def register_rigid(
         Reference and position volumes (preprocessed: bias-corrected, normalised).
     fixed_points, moving_points : mapping label -> (3,) mm, optional
         Fiducials of each volume in its own physical frame.
-    fixed_mask : SimpleITK.Image, optional
-        Chest-wall mask on the reference grid (:func:`chest_wall_mask`): drives the fit.
+    fixed_mask, base_mask : SimpleITK.Image, optional
+        Chest-wall mask on the reference grid (:func:`chest_wall_mask`), which drives the
+        fit; the wall and the breasts' base, which sets loose directions without markers.
     initial : SimpleITK.Transform, optional
         A start that replaces the fiducial initialisation (the fiducials still check it).
     max_residual_mm : float
         Fiducial consistency threshold for the landmark initialisation.
     marker_mask_mm : float
-        Radius of balls around the used reference fiducials (0: none), for those whose
-        fiducial-only residual is within ``fiducial_error_mm`` (the others moved with the
-        skin: a note names them). Where the chest wall leaves a direction loose (e.g. a
-        torso's body axis, :func:`registration.directions.loose_directions`), a second
-        refinement over the mask and these balls (without them, over ``base_mask``) sets it;
-        every other direction stays the chest wall's (:func:`_set_loose`).
+        Radius of balls around the used reference fiducials whose fiducial-only residual is
+        within ``fiducial_error_mm`` (0: none). A direction the chest wall leaves loose
+        (:func:`registration.directions.loose_directions`) is set by a refinement over the
+        mask and these balls (without them, over ``base_mask``; :func:`_set_loose`).
     fiducial_error_mm : float
-        Fiducial localisation error (FLE) assumed at least, mm; the check allows more where
-        the fiducial fit's residuals imply it higher (:func:`check_registration`).
+        Least fiducial localisation error the check assumes, mm (:func:`check_registration`).
     shrink, smooth_mm, iterations, sampling, learning_rate_mm, seed, threads
-        Multi-resolution schedule (shrink factors, Gaussian sigmas in mm), optimiser
-        iterations per level, fraction of mask voxels sampled, first step (mm), the sampling
-        seed and the metric's threads; see :func:`refine_rigid`.
+        Levels (shrink factors, Gaussian sigmas in mm), iterations per level, share of mask
+        voxels sampled, first step (mm), sampling seed, threads: :func:`refine_rigid`.
     fine_levels : int
-        How many of the finest levels of at most :data:`MAX_VOXEL_MM` the masked chest-wall
-        refinement runs (its start is close; a coarse level's optimum pulls along loose ones).
+        How many of the finest levels of at most :data:`MAX_VOXEL_MM` the masked refinement
+        runs (its start is close; a coarse level's optimum pulls along loose ones).
     fiducial_fallback : bool
-        When the refined transform fails a check by moving every marker alike and differs
-        from the fiducial-only one on the chest wall by more than the markers' error makes
-        it 9 times in 10, return the fiducial-only one (``"fiducials"``, :func:`_checked`).
-    base_mask : SimpleITK.Image, optional
-        The wall and the breasts' base: sets loose directions without markers (see above).
+        Where the refined transform fails a check as a whole, return the fiducial-only one
+        (``"fiducials"``, :func:`registration.checks.choose_checked`).
+    repeats, spread_warn_mm : int, float
+        The refinement runs ``repeats`` times with seeds ``seed, seed + 1, ...`` and returns
+        their mean (:mod:`registration.repeats`); a note warns where its standard error from
+        the sampling (the repeats' scatter on the chest wall) exceeds ``spread_warn_mm``.
 
     Returns
     -------
     RigidResult
-        ``status`` "ok" (checks passed), "fiducials" or "flagged" (one failed, see
-        ``warnings``), "unchecked" (no fiducials to check against).
+        ``status`` "ok", "fiducials", "flagged" (see ``warnings``) or "unchecked".
     """
-    _check_seed(seed)
+    seeds = repeat_seeds(seed, repeats)
     notes: list[str] = []
     fid, used = _fiducial_fit(fixed_points, moving_points, notes, max_residual_mm=max_residual_mm)
     opts = dict(iterations=iterations, sampling=sampling, learning_rate_mm=learning_rate_mm,
-                seed=seed, threads=threads)
+                seed=seeds[0], threads=threads)
     how, starts = _start(fixed, moving, fid, initial, notes, fixed_mask=fixed_mask,
                          shrink=shrink, smooth_mm=smooth_mm, opts=opts)
     k = max(1, int(fine_levels))  # the start is close (fiducials, or moments + whole body)
@@ -150,18 +159,62 @@ def register_rigid(
     init, tfm, metric = _best_refined(fixed, moving, starts, notes, fixed_mask, levels)
     for n in notes:
         log.warning("%s: %s", STAGE, n)
-    if fixed_mask is not None:
-        pinned = [] if fid is None or marker_mask_mm <= 0 else _rigid_markers(
-            fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
-        tfm = _set_loose(fixed, moving, init, tfm, fixed_mask, notes, levels=levels,
-                         balls=[fixed_points[k] for k in pinned], radius_mm=marker_mask_mm,
-                         base=base_mask)
-    chosen, checks, status = _checked(tfm, fid, used, fixed_points, moving_points, notes,
-                                      chest=fixed_mask, fiducial_error_mm=fiducial_error_mm,
-                                      fallback=fiducial_fallback)
+    pinned = [] if fid is None or marker_mask_mm <= 0 or fixed_mask is None else _rigid_markers(
+        fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
+    runs = _repeated(fixed, moving, init, (tfm, metric), seeds, fixed_mask, notes,
+                     levels=levels, balls=[fixed_points[k] for k in pinned],
+                     radius_mm=marker_mask_mm, base=base_mask)
+    tfm, spread, own = _agreed([t for t, _ in runs], fixed, fixed_mask, notes, spread_warn_mm,
+                               {k: fixed_points[k] for k in used})
+    chosen, checks, status = choose_checked(
+        tfm, fid, used, fixed_points, moving_points, notes, chest=fixed_mask,
+        fiducial_error_mm=fiducial_error_mm, fallback=fiducial_fallback, refined_error_mm=own)
     res = fiducial_residuals(chosen, fixed_points or {}, moving_points or {})
-    return RigidResult(chosen, how, res, used, metric, tuple(notes), status=status,
-                       checks=checks, fiducial_transform=fid, refined_transform=tfm)
+    return RigidResult(chosen, how, res, used, float(np.mean([m for _, m in runs])),
+                       tuple(notes), status=status, checks=checks, fiducial_transform=fid,
+                       refined_transform=tfm, spread=spread)
+
+
+def _repeated(fixed, moving, init, first, seeds, mask, notes, *, levels, balls, radius_mm,
+              base):
+    """The chest-wall refinement from ``init`` once per sampling seed (``first``: the first
+    seed's, done), each with its loose directions set by :func:`_set_loose` (notes from the
+    first only): [(transform, correlation)]."""
+    more = {k: v for k, v in levels.items() if k != "seed"}
+    runs = [first] + (refine_rigid_seeds(fixed, moving, init, seeds[1:], fixed_mask=mask,
+                                         **more) if len(seeds) > 1 else [])
+    if mask is None:
+        return runs
+    walls = _set_loose(fixed, moving, init, [t for t, _ in runs], mask, notes, seeds=seeds,
+                       levels=more, balls=balls, radius_mm=radius_mm, base=base)
+    return [(w, m) for w, (_, m) in zip(walls, runs)]
+
+
+def _agreed(tfms, fixed, mask, notes, warn_mm, markers):
+    """(the mean of the repeats' transforms, their :func:`registration.repeats.seed_spread`
+    on the chest-wall mask's points, or the reference's box corners without a mask, and the
+    mean's standard error at each of the ``markers`` {label: point}); a note where the
+    mean's standard error from the sampling exceeds ``warn_mm``."""
+    centre = np.asarray(tfms[0].GetCenter(), float)
+    mean = mean_transform(tfms, centre) if len(tfms) > 1 else tfms[0]
+    if mask is not None:
+        pts = mask_points(mask)
+    else:
+        size = np.asarray(fixed.GetSize()) - 1
+        pts = np.array([fixed.TransformContinuousIndexToPhysicalPoint(
+            tuple(float(v) for v in size * np.array(c))) for c in np.ndindex(2, 2, 2)])
+    spread = seed_spread(tfms, mean, pts)
+    if spread["standard_error"] > warn_mm:
+        notes.append(
+            f"the chest-wall refinement's {len(tfms)} sampling seeds disagree by "
+            f"{spread['rms']:.2f} mm RMS (up to {spread['max']:.2f} mm) on the chest wall: "
+            f"their mean is uncertain by about {spread['standard_error']:.2f} mm from the "
+            f"sampling alone, more than {warn_mm:.2f} mm; the images pin the registration "
+            "less well than that (check the overlays; fiducials on the sternum or a larger "
+            "[register] sampling narrow it)")
+        log.warning("%s: %s", STAGE, notes[-1])
+    at = point_errors(tfms, mean, np.array(list(markers.values())).reshape(-1, 3))
+    return mean, spread, dict(zip(markers, (float(v) for v in at)))
 
 
 #: The chest-wall refinement's levels keep voxels of at most this size (mm, the geometric
@@ -179,73 +232,6 @@ def _fine(fixed, shrink, smooth_mm) -> dict:
     keep = [i for i, s in enumerate(shrink) if s * voxel <= MAX_VOXEL_MM] or [len(shrink) - 1]
     return {"shrink": tuple(shrink[i] for i in keep),
             "smooth_mm": tuple(smooth_mm[i] for i in keep)}
-
-
-def _checked(tfm, fid, used, fixed_points, moving_points, notes, *, chest,
-             fiducial_error_mm, fallback):
-    """(the transform to use, :func:`_check`'s checks, status): the refined ``tfm`` when it
-    passes; when it fails and ``fallback`` is set, the fiducial-only ``fid`` (status
-    ``"fiducials"``, a note with its expected chest-wall error) if the two disagree at every
-    marker alike (:data:`COHERENT_SHIFT`): the refinement slid as a whole. Where they
-    disagree at one marker mostly, that marker moved with the skin and bent the fiducial
-    fit, so the refined one is kept ("flagged", a note names the marker). It is kept too
-    (flagged, with a note) where on the chest wall the two differ (mean over the wall) by no
-    more than the fiducial-only fit would differ from a right one 9 times in 10 under the
-    markers' localisation error (the 90th percentile of
-    :func:`registration.checks.wall_difference_null`): nothing then shows that the
-    refinement walked away.
-
-    Measured (``bench/register_suite.py``, the demo's subject): the two suite positions that
-    fail the check shift every marker alike (small-002 prone 1.72-1.90 mm, full-000's tilted
-    position with its own segmentation 1.01-1.06 mm) and the fiducials are the better answer
-    (chest-wall TRE 1.45 -> 0.91 mm and 1.17 -> 0.19 mm), as on small-002's tilted position
-    since the localisation error comes from the markers' residuals (1.28-1.48 mm; max TRE
-    1.88 -> 0.40 mm, truth labels, 2026-12-02); the demo's prone position shifts
-    imf_left by 2.05 mm and the others by 0.11-0.43 mm, and there the refined transform is
-    right (0.27 mm against the fiducials' 3.34 mm). On the wall, the suite's fallbacks
-    differ from the markers' fit by 1.09-1.46 times that 90th percentile (small-002, truth
-    labels, 2026-12-04); where the refined transform is right, by 0.65-0.71 times (the CI
-    slice's small-003 tilted position, 0.94 mm against 1.32: max TRE 0.53 mm against the
-    fiducials' 1.68; the unit tests' pipeline phantom with either schedule, 2.49-2.54 mm
-    against 3.85: 0.79-0.84 mm against 3.78)."""
-    checks, status = _check(tfm, fid, used, fixed_points, moving_points, notes,
-                            chest=chest, fiducial_error_mm=fiducial_error_mm)
-    if status != "flagged" or not fallback:
-        return tfm, checks, status
-    shift = checks["fiducial_shift_mm"]
-    worst = max(shift, key=shift.get)
-    if min(shift.values()) < COHERENT_SHIFT * shift[worst]:
-        notes.append(f"the refined transform disagrees with the fiducials mostly at {worst!r} "
-                     f"({shift[worst]:.2f} mm, the others {min(shift.values()):.2f}-"
-                     f"{sorted(shift.values())[-2]:.2f} mm): that marker may have moved with "
-                     "the skin; the refined transform is kept")
-        log.warning("%s: %s", STAGE, notes[-1])
-        return tfm, checks, status
-    wall, null = checks.get("chest_wall_shift_mm"), checks.get("chest_wall_null_mm")
-    if wall is not None and wall["mean"] <= null["p90"]:
-        notes.append(f"the refined transform moves every marker alike, but on the chest wall "
-                     f"it differs from the fiducial-only one by {wall['mean']:.2f} mm mean, "
-                     "within what the markers' own localisation error gives 9 times in 10 "
-                     f"were the refined transform right ({null['p90']:.2f} mm): nothing shows "
-                     "that the refinement walked away; the refined transform is kept")
-        log.warning("%s: %s", STAGE, notes[-1])
-        return tfm, checks, status
-    notes.append(_fallback_note(checks))
-    log.warning("%s: %s", STAGE, notes[-1])
-    return fid, checks, "fiducials"
-
-
-def _fallback_note(checks: dict) -> str:
-    """The warning that the fiducial-only transform replaces a refined one that failed."""
-    exp, wall, null = (checks.get(k) for k in ("expected_tre_mm", "chest_wall_shift_mm",
-                                               "chest_wall_null_mm"))
-    where = ("" if exp is None else f" (on the chest wall the two differ by {wall['mean']:.2f} "
-             f"mm mean, more than the {null['p90']:.2f} mm that the markers' localisation error "
-             f"of {checks['fle_mm']:.2f} mm gives 9 times in 10), expected error on the chest "
-             f"wall {exp['mean']:.2f} mm mean, {exp['max']:.2f} mm max")
-    return ("the refinement moved every marker alike: using the fiducial-only transform "
-            "instead of the refined one" + where
-            + " ([register] fiducial_fallback = false keeps the refined one)")
 
 
 def _fiducial_fit(fixed_points, moving_points, notes, *, max_residual_mm):
@@ -280,15 +266,16 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
     return pinned
 
 
-def _set_loose(fixed, moving, init, wall, chest, notes, *, levels, balls, radius_mm,
+def _set_loose(fixed, moving, init, walls, chest, notes, *, seeds, levels, balls, radius_mm,
                base=None):
-    """The chest-wall transform ``wall`` with its loose directions set by a refinement over
-    the mask and balls of ``radius_mm`` around the reference markers ``balls`` (a note says
-    which and by how much); without markers, by a refinement over ``base`` (the wall and the
-    breast tissue at its base: gravity, across the body in every lying position, moves
-    that tissue little along the body axis, the direction a torso's wall leaves loose);
-    ``wall`` itself where the chest wall pins every direction, or where neither is there to
-    set a loose one (a note says the registration is not determined along it). Markers sit
+    """The chest-wall transforms ``walls`` (one per sampling seed of ``seeds``), each with its
+    loose directions set by a refinement with its seed over the mask and balls of
+    ``radius_mm`` around the reference markers ``balls`` (a note says which and by how much,
+    on average); without markers, by a refinement over ``base`` (the wall and the breast
+    tissue at its base: gravity, across the body in every lying position, moves that tissue
+    little along the body axis, the direction a torso's wall leaves loose); ``walls``
+    themselves where the chest wall pins every direction, or where neither is there to set a
+    loose one (a note says the registration is not determined along it). Markers sit
     on skin, which the breasts pull along in a tilted position (on the validation suite a
     coherent lateral shift of about 1 mm that leaves no residual), so they may not drive the
     directions the wall pins, nor a loose rotation: the drag turns them about the body axis
@@ -300,7 +287,7 @@ def _set_loose(fixed, moving, init, wall, chest, notes, *, levels, balls, radius
         if balls:
             notes.append("the chest wall pins every rigid direction (weakest sharpness "
                          f"{dirs.ratios[0]:.3f}): the markers only check the registration")
-        return wall
+        return walls
     turns = dirs.turns()
     if turns.loose.any():
         notes.append("the chest wall leaves " + "; ".join(turns.describe()) + " loose: "
@@ -308,20 +295,21 @@ def _set_loose(fixed, moving, init, wall, chest, notes, *, levels, balls, radius
                      "skin, which gravity drags round the body)")
     dirs = dirs.translations()
     if not dirs.loose.any():
-        return wall
+        return walls
     if not balls and base is None:
         notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose and "
                      "no rigid marker sets it: the registration is not determined along it "
                      "(add fiducials on the sternum or check it by eye)")
-        return wall
+        return walls
     second = add_balls(chest, balls, radius_mm) if balls else base
-    other, _ = refine_rigid(fixed, moving, init, fixed_mask=second, **levels)
-    out, moved = blend_loose(wall, other, dirs)
+    others = refine_rigid_seeds(fixed, moving, init, seeds, fixed_mask=second, **levels)
+    out, shifts = zip(*(blend_loose(w, o, dirs) for w, (o, _) in zip(walls, others)))
+    moved = float(np.mean(shifts))
     how = (f": set by the markers' refinement (moved {moved:.2f} mm)" if balls else
            " and no rigid marker sets it: set by the breasts' base (moved "
            f"{moved:.2f} mm); check it by eye or add fiducials on the sternum")
     notes.append("the chest wall leaves " + "; ".join(dirs.describe()) + " loose" + how)
-    return out
+    return list(out)
 
 
 def _start(fixed, moving, fid, initial, notes, *, fixed_mask, shrink, smooth_mm, opts):
@@ -379,21 +367,3 @@ def _best_refined(fixed, moving, starts, notes, fixed_mask, levels):
     return best[1], best[2], best[3]
 
 
-def _check(tfm, fid, used, fixed_points, moving_points, notes, *, chest,
-           fiducial_error_mm) -> tuple[dict, str]:
-    """:func:`check_registration` of ``tfm`` against the fiducial-only ``fid`` on the used
-    fiducials and the chest-wall mask's points: (checks, status), each failure logged and
-    noted; ``({}, "unchecked")`` without ``fid``."""
-    if fid is None:
-        notes.append("no consistent fiducials to check the registration against: unchecked")
-        return {}, "unchecked"
-    pts = {k: fixed_points[k] for k in used}
-    checks = check_registration(
-        tfm, fid, pts, fiducial_residuals(fid, pts, {k: moving_points[k] for k in used}),
-        chest_points=None if chest is None else mask_points(chest),
-        fiducial_error_mm=fiducial_error_mm,
-    )
-    for w in checks["failures"]:
-        log.warning("%s: %s", STAGE, w)
-        notes.append(w)
-    return checks, "ok" if checks["passed"] else "flagged"

@@ -30,6 +30,8 @@ Config (TOML, all optional)::
     fiducial_fallback = true   # a refined transform that failed by sliding: use the fiducials'
     require_fiducials = false  # stop (error) when a position's check fails ("flagged")
     seed = 20211               # metric sampling seed, >= 1 (0 would mean the wall clock)
+    repeats = 5                # refinements with seeds seed, seed + 1, ...; their mean is used
+    spread_warn_mm = 0.25      # warn where that mean's standard error (their scatter) is larger
     threads = 1                # metric threads (1: the same transform on every machine)
 
 Each position's entry in ``registration.json`` has ``status``: ``"ok"`` (the refined
@@ -40,8 +42,9 @@ is used; the reasons and that transform's expected error on the chest wall are i
 marker, which the skin may have pulled along, or on the chest wall it is within what the
 markers' localisation error alone gives 9 times in 10, or ``fiducial_fallback = false``) or
 ``"unchecked"`` (fewer than three consistent fiducials found: a warning, not an error).
-``matrix`` is the transform used, ``refined_matrix`` the correlation's and
-``fiducial_only_matrix`` the markers'.
+``matrix`` is the transform used, ``refined_matrix`` the correlation's (the mean of its
+``repeats``) and ``fiducial_only_matrix`` the markers'; ``seed_spread_mm`` says how far the
+repeats scattered on the chest wall (``rms``, ``max``) and the mean's ``standard_error``.
 """
 
 from __future__ import annotations

@@ -21,7 +21,8 @@ log = logging.getLogger("breastmodel.register")
 REGISTER_KEYS = {"max_residual_mm", "marker_mask_mm", "shrink", "smooth_mm", "iterations",
                  "sampling", "learning_rate_mm", "fine_levels", "mask_margin_mm",
                  "marker_diameter_mm", "seed", "threads", "fiducial_error_mm",
-                 "require_fiducials", "fiducial_fallback", "base_margin_mm"}
+                 "require_fiducials", "fiducial_fallback", "base_margin_mm", "repeats",
+                 "spread_warn_mm"}
 #: Depth of the breast tissue in front of the chest wall that sets the directions the wall
 #: leaves loose (a torso's body axis) where no fiducial does, mm (``[register]
 #: base_margin_mm``; 0: none, those directions stay the wall's)
@@ -29,7 +30,7 @@ BASE_MARGIN_MM = 6.0
 #: ``[register]`` keys passed to :func:`registration.rigid.register_rigid` as they are.
 _RIGID_KEYS = ("max_residual_mm", "marker_mask_mm", "iterations", "sampling",
                "learning_rate_mm", "fine_levels", "seed", "threads", "fiducial_error_mm",
-               "fiducial_fallback")
+               "fiducial_fallback", "repeats", "spread_warn_mm")
 
 
 def read_config(path: Path | Mapping[str, Any] | None) -> dict[str, Any]:
@@ -274,6 +275,7 @@ def _entry(name: str, res, fid: dict, g: np.ndarray) -> dict[str, Any]:
         "fiducial_only_matrix": (None if res.fiducial_transform is None else
                                  transform_to_matrix(res.fiducial_transform).tolist()),
         "refined_matrix": transform_to_matrix(res.refined_transform).tolist(),
+        "seed_spread_mm": res.spread,
         "gravity_reference": g.tolist(),
         "warnings": list(res.warnings),
     }

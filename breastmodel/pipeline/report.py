@@ -118,15 +118,15 @@ def _qa_sections(images: Mapping[str, Any], segment: Mapping[str, Any]) -> list[
               "image.</p>"]
     rrows = []
     for pos, e in (reg.get("positions") or {}).items():
-        res = e.get("fiducial_residuals_mm") or {}
-        tre = e.get("tre_mm") or {}
+        res, tre, sp = (e.get(k) or {} for k in ("fiducial_residuals_mm", "tre_mm",
+                                                 "seed_spread_mm"))
         rrows.append([pos, e.get("initialisation"), len(e.get("fiducials_used") or []),
                       max(res.values()) if res else None, e.get("correlation"),
-                      tre.get("mean"), e.get("rotation_error_deg"),
+                      sp.get("standard_error"), tre.get("mean"), e.get("rotation_error_deg"),
                       "; ".join(e.get("warnings") or []) or "-"])
     parts.append(_table(["position", "initialisation", "fiducials used",
-                         "max fiducial residual (mm)", "correlation", "TRE mean (mm)",
-                         "rotation error (deg)", "warnings"], rrows))
+                         "max fiducial residual (mm)", "correlation", "repeats' standard error "
+                         "(mm)", "TRE mean (mm)", "rotation error (deg)", "warnings"], rrows))
     out = Path(images.get("out", "."))
     reference = sitk.ReadImage(str(out / images["volumes"][ref]))
     ref_labels = sitk.ReadImage(str(out / images["labels"][ref]))

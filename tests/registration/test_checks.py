@@ -143,6 +143,25 @@ def test_check_flags_a_shift_beyond_the_localisation_error():
     assert loose["passed"]
 
 
+def test_the_refined_transforms_own_error_widens_the_markers_allowance():
+    """Two estimates that each err differ by both errors: a refined transform 1.2 mm from the
+    markers' fit fails against a localisation error of 1.0 mm alone, and passes where its
+    own standard error at the markers (its repeats' scatter) is 0.8 mm, sqrt(1 + 0.64) =
+    1.28 mm; at 0.5 mm, sqrt(1.25) = 1.12 mm, it still fails, naming that error."""
+    rng = np.random.default_rng(0)
+    fp = {k: rng.normal(0, 50, 3) for k in "abcd"}
+    truth = euler((3.0, 2.0, -5.0), (1.0, 2.0, 3.0))
+    zero = {k: 0.0 for k in fp}
+    moved = sitk.CompositeTransform([sitk.TranslationTransform(3, (0.0, 1.2, 0.0)), truth])
+    assert not check_registration(moved, truth, fp, zero)["passed"]
+    wide = check_registration(moved, truth, fp, zero, refined_error_mm={k: 0.8 for k in fp})
+    assert wide["passed"]
+    assert wide["fiducial_allowed_mm"]["a"] == pytest.approx(np.sqrt(1.64))
+    narrow = check_registration(moved, truth, fp, zero, refined_error_mm={k: 0.5 for k in fp})
+    assert not narrow["passed"]
+    assert "and the refinement's own error there 0.50 mm" in narrow["failures"][0]
+
+
 def _kabsch_residual(a: np.ndarray, b: np.ndarray) -> float:
     """RMS residual of the best rigid fit of points ``a`` onto ``b``."""
     a0, b0 = a - a.mean(axis=0), b - b.mean(axis=0)
@@ -320,7 +339,7 @@ def test_the_fiducials_replace_a_refinement_that_slid_not_one_a_marker_bent(how)
     whole: the fiducial-only one replaces it. One that disagrees at a single marker (a
     rotation about an axis through two others) is what a marker pulled along by the skin
     does to the fiducial fit: the refined one is kept, flagged, and the marker named."""
-    from registration.rigid import _checked
+    from registration.checks import choose_checked
 
     fp = {"a": np.array([0.0, 0, 0]), "b": np.array([100.0, 0, 0]),
           "c": np.array([50.0, 10, 0]), "d": np.array([50.0, 100, 0])}
@@ -329,8 +348,8 @@ def test_the_fiducials_replace_a_refinement_that_slid_not_one_a_marker_bent(how)
     refined = (euler((0.0, 0.0, 0.0), (2.0, 0.0, 0.0)) if how == "slid" else
                euler((np.degrees(0.02), 0.0, 0.0), (0.0, 0.0, 0.0), center=(0.0, 0.0, 0.0)))
     notes: list[str] = []
-    used, checks, status = _checked(refined, fid, tuple(fp), fp, mp, notes,
-                                    chest=None, fiducial_error_mm=1.0, fallback=True)
+    used, checks, status = choose_checked(refined, fid, tuple(fp), fp, mp, notes,
+                                          chest=None, fiducial_error_mm=1.0, fallback=True)
     assert not checks["passed"]
     if how == "slid":
         assert status == "fiducials" and used is fid
@@ -354,7 +373,7 @@ def test_a_slide_within_the_fiducials_own_error_on_the_wall_keeps_the_refined_on
     with a note. (The pipeline phantom tilted with the default schedule: 2.54 mm against
     2.49 expected and 3.85 at the 90th percentile, refined TRE 0.79 mm, the fiducials'
     3.78; small-002 tilted: 1.23 against 0.90 and 1.13, fiducials 0.25, refined 1.49.)"""
-    from registration.rigid import _checked
+    from registration.checks import choose_checked
 
     fp = {"a": np.array([0.0, 0, 0]), "b": np.array([100.0, 0, 0]),
           "c": np.array([50.0, 10, 0]), "d": np.array([50.0, 100, 0])}
@@ -364,8 +383,8 @@ def test_a_slide_within_the_fiducials_own_error_on_the_wall_keeps_the_refined_on
     chest = sitk.Image(20, 20, 3, sitk.sitkUInt8) + 1
     chest.SetOrigin((40.0, 20.0, {"near": 0.0, "between": 100.0, "far": 200.0}[wall]))
     notes: list[str] = []
-    used, checks, status = _checked(refined, fid, tuple(fp), fp, mp, notes,
-                                    chest=chest, fiducial_error_mm=1.0, fallback=True)
+    used, checks, status = choose_checked(refined, fid, tuple(fp), fp, mp, notes,
+                                          chest=chest, fiducial_error_mm=1.0, fallback=True)
     assert not checks["passed"]
     assert checks["chest_wall_shift_mm"]["mean"] == pytest.approx(1.5)
     expected = checks["expected_tre_mm"]["mean"]
