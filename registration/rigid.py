@@ -210,8 +210,8 @@ def _agreed(tfms, fixed, mask, notes, warn_mm, markers):
             f"{spread['rms']:.2f} mm RMS (up to {spread['max']:.2f} mm) on the chest wall: "
             f"their mean is uncertain by about {spread['standard_error']:.2f} mm from the "
             f"sampling alone, more than {warn_mm:.2f} mm; the images pin the registration "
-            "less well than that (check the overlays; fiducials on the sternum or a larger "
-            "[register] sampling narrow it)")
+            "less well than that (check the overlays; fiducials on the sternum, more "
+            "[register] repeats or a larger sampling narrow it)")
         log.warning("%s: %s", STAGE, notes[-1])
     at = point_errors(tfms, mean, np.array(list(markers.values())).reshape(-1, 3))
     return mean, spread, dict(zip(markers, (float(v) for v in at)))

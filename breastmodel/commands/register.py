@@ -30,7 +30,7 @@ Config (TOML, all optional)::
     fiducial_fallback = true   # a refined transform that failed by sliding: use the fiducials'
     require_fiducials = false  # stop (error) when a position's check fails ("flagged")
     seed = 20211               # metric sampling seed, >= 1 (0 would mean the wall clock)
-    repeats = 5                # refinements with seeds seed, seed + 1, ...; their mean is used
+    repeats = 3                # refinements with seeds seed, seed + 1, ...; their mean is used
     spread_warn_mm = 0.25      # warn where that mean's standard error (their scatter) is larger
     threads = 1                # metric threads (1: the same transform on every machine)
 
