@@ -60,7 +60,7 @@ class RigidResult:
         Fiducial labels that drove the initialisation.
     metric : float
         Correlation of the chest-wall refinement (negative: -1 is perfect), before its
-        loose directions were taken from the markers.
+        loose directions were taken from the markers; the mean over its repeats.
     warnings : tuple of str
         Human-readable notes (fallbacks, dropped markers, failed checks).
     status : str
