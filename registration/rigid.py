@@ -101,7 +101,7 @@ def register_rigid(
     max_residual_mm: float = 3.0, marker_mask_mm: float = 8.0, fiducial_error_mm: float = 1.0,
     shrink: tuple[int, ...] = (4, 2, 1), smooth_mm: tuple[float, ...] = (2.0, 1.0, 0.0),
     iterations: int = 50, sampling: float = 0.1, learning_rate_mm: float = 0.5,
-    fine_levels: int = 2, seed: int = DEFAULT_SEED, threads: int = 1,
+    fine_levels: int = 2, seed: int = DEFAULT_SEED, threads: int | None = None,
     fiducial_fallback: bool = True, base_mask: sitk.Image | None = None,
     repeats: int = REPEATS, spread_warn_mm: float = SPREAD_WARN_MM,
 ) -> RigidResult:
@@ -156,15 +156,15 @@ def register_rigid(
                          shrink=shrink, smooth_mm=smooth_mm, opts=opts)
     k = max(1, int(fine_levels))  # the start is close (fiducials, or moments + whole body)
     levels = dict(_fine(fixed, shrink[-k:], smooth_mm[-k:]), **opts)
-    init, tfm, metric = _best_refined(fixed, moving, starts, notes, fixed_mask, levels)
+    init, runs = _best_refined(fixed, moving, starts, notes, fixed_mask, levels, seeds)
     for n in notes:
         log.warning("%s: %s", STAGE, n)
     pinned = [] if fid is None or marker_mask_mm <= 0 or fixed_mask is None else _rigid_markers(
         fid, used, fixed_points, moving_points, notes, fiducial_error_mm=fiducial_error_mm)
-    runs = _repeated(fixed, moving, init, (tfm, metric), seeds, fixed_mask, notes,
-                     levels=levels, balls=[fixed_points[k] for k in pinned],
-                     radius_mm=marker_mask_mm, base=base_mask)
-    tfm, spread, own = _agreed([t for t, _ in runs], fixed, fixed_mask, notes, spread_warn_mm,
+    walls = _set_loose(fixed, moving, init, [t for t, _ in runs], fixed_mask, notes,
+                       seeds=seeds, levels=levels, balls=[fixed_points[k] for k in pinned],
+                       radius_mm=marker_mask_mm, base=base_mask)
+    tfm, spread, own = _agreed(walls, fixed, fixed_mask, notes, spread_warn_mm,
                                {k: fixed_points[k] for k in used})
     chosen, checks, status = choose_checked(
         tfm, fid, used, fixed_points, moving_points, notes, chest=fixed_mask,
@@ -173,21 +173,6 @@ def register_rigid(
     return RigidResult(chosen, how, res, used, float(np.mean([m for _, m in runs])),
                        tuple(notes), status=status, checks=checks, fiducial_transform=fid,
                        refined_transform=tfm, spread=spread)
-
-
-def _repeated(fixed, moving, init, first, seeds, mask, notes, *, levels, balls, radius_mm,
-              base):
-    """The chest-wall refinement from ``init`` once per sampling seed (``first``: the first
-    seed's, done), each with its loose directions set by :func:`_set_loose` (notes from the
-    first only): [(transform, correlation)]."""
-    more = {k: v for k, v in levels.items() if k != "seed"}
-    runs = [first] + (refine_rigid_seeds(fixed, moving, init, seeds[1:], fixed_mask=mask,
-                                         **more) if len(seeds) > 1 else [])
-    if mask is None:
-        return runs
-    walls = _set_loose(fixed, moving, init, [t for t, _ in runs], mask, notes, seeds=seeds,
-                       levels=more, balls=balls, radius_mm=radius_mm, base=base)
-    return [(w, m) for w, (_, m) in zip(walls, runs)]
 
 
 def _agreed(tfms, fixed, mask, notes, warn_mm, markers):
@@ -269,9 +254,9 @@ def _rigid_markers(fid, used, fixed_points, moving_points, notes, *,
 def _set_loose(fixed, moving, init, walls, chest, notes, *, seeds, levels, balls, radius_mm,
                base=None):
     """The chest-wall transforms ``walls`` (one per sampling seed of ``seeds``), each with its
-    loose directions set by a refinement with its seed over the mask and balls of
-    ``radius_mm`` around the reference markers ``balls`` (a note says which and by how much,
-    on average); without markers, by a refinement over ``base`` (the wall and the breast
+    loose directions set by a refinement from ``init`` with its seed over the mask and balls
+    of ``radius_mm`` around the reference markers ``balls`` (a note says which and by how
+    much, on average); without markers, by a refinement over ``base`` (the wall and the breast
     tissue at its base: gravity, across the body in every lying position, moves that tissue
     little along the body axis, the direction a torso's wall leaves loose); ``walls``
     themselves where the chest wall pins every direction, or where neither is there to set a
@@ -281,7 +266,10 @@ def _set_loose(fixed, moving, init, walls, chest, notes, *, seeds, levels, balls
     directions the wall pins, nor a loose rotation: the drag turns them about the body axis
     (small-000's tilted position, sternum markers 1.4-1.6 mm sideways), and where a wall's
     turn about that axis came out loose (small-003's tilted position drawn without noise,
-    sharpness 0.009) the markers set it 1.20 mm off, the wall 0.33 mm."""
+    sharpness 0.009) the markers set it 1.20 mm off, the wall 0.33 mm. Without a mask
+    (``chest`` None), ``walls``."""
+    if chest is None:
+        return walls
     dirs = loose_directions(fixed, chest)
     if not dirs.loose.any():
         if balls:
@@ -302,7 +290,8 @@ def _set_loose(fixed, moving, init, walls, chest, notes, *, seeds, levels, balls
                      "(add fiducials on the sternum or check it by eye)")
         return walls
     second = add_balls(chest, balls, radius_mm) if balls else base
-    others = refine_rigid_seeds(fixed, moving, init, seeds, fixed_mask=second, **levels)
+    more = {k: v for k, v in levels.items() if k != "seed"}
+    others = refine_rigid_seeds(fixed, moving, init, seeds, fixed_mask=second, **more)
     out, shifts = zip(*(blend_loose(w, o, dirs) for w, (o, _) in zip(walls, others)))
     moved = float(np.mean(shifts))
     how = (f": set by the markers' refinement (moved {moved:.2f} mm)" if balls else
@@ -346,24 +335,28 @@ def _start(fixed, moving, fid, initial, notes, *, fixed_mask, shrink, smooth_mm,
 START_MARGIN = 0.02
 
 
-def _best_refined(fixed, moving, starts, notes, fixed_mask, levels):
-    """(start, refined transform, correlation) of the first candidate start, or of the one
-    whose chest-wall refinement correlates better than it by more than
-    :data:`START_MARGIN` (a note says which was kept where there were several). Breasts that
-    deform draw the whole body's centroid and correlation: on a soft suite subject (torso,
-    0.5 kPa, markers slid 20 mm, so none used) the moments start refined over the body came
-    to the wall 14 mm and 11 deg off (correlation -0.776), the scanner's frame to 1.4 mm
-    (-0.950; the truth's transform refines to -0.951)."""
+def _best_refined(fixed, moving, starts, notes, fixed_mask, levels, seeds):
+    """(start, the chest-wall refinements [(transform, correlation)] from it, one per sampling
+    seed of ``seeds``): the first candidate start, or the one whose refinement with the
+    first seed correlates better than the first's by more than :data:`START_MARGIN` (a note
+    says which was kept where there were several). Breasts that deform draw the whole body's
+    centroid and correlation: on a soft suite subject (torso, 0.5 kPa, markers slid 20 mm, so
+    none used) the moments start refined over the body came to the wall 14 mm and 11 deg off
+    (correlation -0.776), the scanner's frame to 1.4 mm (-0.950; the truth's transform
+    refines to -0.951)."""
+    more = {k: v for k, v in levels.items() if k != "seed"}
+    if len(starts) == 1:
+        return starts[0][1], refine_rigid_seeds(fixed, moving, starts[0][1], seeds,
+                                                fixed_mask=fixed_mask, **more)
     fits = [(name, start, *refine_rigid(fixed, moving, start, fixed_mask=fixed_mask, **levels))
             for name, start in starts]
     best = min(fits, key=lambda f: f[3])
     if best[3] > fits[0][3] - START_MARGIN:
         best = fits[0]
-    if len(fits) > 1:
-        others = ", ".join(f"{f[0]} {f[3]:.4f}" for f in fits if f is not best)
-        notes.append(f"of {len(fits)} starts the chest-wall fit from {best[0]} was kept "
-                     f"(correlation {best[3]:.4f}; {others}; another replaces the first only "
-                     f"where better by {START_MARGIN})")
-    return best[1], best[2], best[3]
-
-
+    others = ", ".join(f"{f[0]} {f[3]:.4f}" for f in fits if f is not best)
+    notes.append(f"of {len(fits)} starts the chest-wall fit from {best[0]} was kept "
+                 f"(correlation {best[3]:.4f}; {others}; another replaces the first only "
+                 f"where better by {START_MARGIN})")
+    rest = refine_rigid_seeds(fixed, moving, best[1], seeds[1:], fixed_mask=fixed_mask,
+                              **more) if len(seeds) > 1 else []
+    return best[1], [(best[2], best[3]), *rest]

@@ -32,7 +32,8 @@ Config (TOML, all optional)::
     seed = 20211               # metric sampling seed, >= 1 (0 would mean the wall clock)
     repeats = 3                # refinements with seeds seed, seed + 1, ...; their mean is used
     spread_warn_mm = 0.25      # warn where that mean's standard error (their scatter) is larger
-    threads = 1                # metric threads (1: the same transform on every machine)
+    threads = 0                # metric threads (0: BREASTMODEL_THREADS, else the cores); one
+                               # count gives one transform bit for bit on every machine
 
 Each position's entry in ``registration.json`` has ``status``: ``"ok"`` (the refined
 transform agrees with the fiducial-only solution at the markers and on the chest wall),

@@ -50,7 +50,21 @@ def read_config(path: Path | Mapping[str, Any] | None) -> dict[str, Any]:
     for key in ("require_fiducials", "fiducial_fallback"):
         if key in cfg and not isinstance(cfg[key], bool):
             raise ValueError(f"{where} {key} must be true or false, got {cfg[key]!r}")
+    t = cfg.get("threads", 0)
+    if isinstance(t, bool) or not isinstance(t, int) or t < 0:
+        raise ValueError(f"{where} threads must be a whole number >= 0 (0: "
+                         f"BREASTMODEL_THREADS, else the cores), got {t!r}")
     return cfg
+
+
+def with_threads(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``[register]`` table with ``threads`` resolved: the setting (0 or absent: the
+    environment's ``BREASTMODEL_THREADS``, else the cores, as the solver's,
+    :func:`mechanics.threads.resolve_threads`). The correlation's sums depend on it (two
+    counts end about 1e-9 mm apart), so the stage's cache key holds the count used."""
+    from mechanics.threads import resolve_threads
+
+    return {**cfg, "threads": resolve_threads(cfg.get("threads") or None)}
 
 
 def truth_transform(truth: Path, reference: str, position: str):
@@ -117,7 +131,7 @@ def register_subject(subject_dir: Path | Subject, out: Path, *, truth: Path | No
     from imaging.io import write_volume
     from imaging.subject import Subject, read_subject
 
-    cfg = read_config(config)
+    cfg = with_threads(read_config(config))
     require = cfg.get("require_fiducials", False)
     subject = subject_dir if isinstance(subject_dir, Subject) else read_subject(subject_dir)
     if require and not subject.fiducials:

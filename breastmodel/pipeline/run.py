@@ -110,6 +110,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
         breast in a segmentation...), naming the file and the problem.
     """
     from breastmodel.config import write_provenance
+    from breastmodel.pipeline.register import with_threads
     from breastmodel.pipeline.segment import contrast_doubt
     from imaging.markups import markups_files
     from imaging.subject import SubjectError, read_subject
@@ -146,7 +147,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
         if (subject.root / "fiducials.csv").is_file():
             sub_files.append(subject.root / "fiducials.csv")
         sub_files += markups_files(subject.root, positions)
-        reg_dir, reg_key = R.stage("register", {"register": cfg["register"]},
+        reg_dir, reg_key = R.stage("register", {"register": with_threads(cfg["register"])},
                                    [*(seg_keys[p] for p in positions), *sub_files],
                                    register_stage(subject, seg_dirs, cfg))
         skins_dir, skins_key = R.stage("skins", {"surface": cfg["surface"]}, [reg_key],

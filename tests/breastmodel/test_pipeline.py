@@ -360,10 +360,23 @@ def test_given_labels_for_some_positions_the_others_segmented(phantom, tmp_path)
     ({"segment": {"labels": "x", "labels_positions": "supine"}}, "list of position names"),
     ({"segment": {"labels": "x", "labels_positions": []}}, "list of position names"),
     ({"register": {"require_fiducials": "yes"}}, r"\[register\] require_fiducials must be"),
+    ({"register": {"threads": -1}}, r"\[register\] threads must be a whole number"),
+    ({"register": {"threads": 1.5}}, r"\[register\] threads must be a whole number"),
 ])
 def test_bad_config_is_rejected(raw, match):
     with pytest.raises(ConfigError, match=match):
         resolve_config(raw)
+
+
+def test_the_registrations_thread_count_is_resolved_before_it_keys_the_stage(monkeypatch):
+    """The correlation's last bits follow its thread count, so the register stage's cache key
+    holds the count it runs on: the setting, else BREASTMODEL_THREADS, else the cores."""
+    from breastmodel.pipeline.register import with_threads
+
+    monkeypatch.setenv("BREASTMODEL_THREADS", "3")
+    assert with_threads({}) == {"threads": 3}
+    assert with_threads({"threads": 0, "seed": 5}) == {"threads": 3, "seed": 5}
+    assert with_threads({"threads": 2})["threads"] == 2
 
 
 def _cache_file(out: Path, label: str, name: str) -> Path:

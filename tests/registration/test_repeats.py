@@ -96,3 +96,23 @@ def test_repeats_that_scatter_more_than_the_limit_are_named_in_a_warning(prone_p
     loud = register_rigid(**prone_pair, repeats=3, spread_warn_mm=se / 2)
     said = [w for w in loud.warnings if "sampling seeds disagree" in w]
     assert len(said) == 1 and f"{se:.2f} mm from the sampling alone" in said[0]
+
+
+def test_the_thread_count_set_is_the_one_the_metric_runs_on(prone_pair):
+    """``threads`` decides the transform, whatever SimpleITK's global count: the metric
+    splits its sums over the global count (the method's own setting alone did not hold it),
+    so the refinement sets it for the call and puts it back."""
+    runs = {}
+    was = sitk.ProcessObject.GetGlobalDefaultNumberOfThreads()
+    try:
+        for global_count in (1, 3):
+            sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(global_count)
+            for threads in (1, 2):
+                res = register_rigid(**prone_pair, repeats=1, threads=threads)
+                runs[global_count, threads] = transform_to_matrix(res.refined_transform)
+            assert sitk.ProcessObject.GetGlobalDefaultNumberOfThreads() == global_count
+    finally:
+        sitk.ProcessObject.SetGlobalDefaultNumberOfThreads(was)
+    assert np.array_equal(runs[1, 1], runs[3, 1]) and np.array_equal(runs[1, 2], runs[3, 2])
+    # and the count does reach the sums: another count, other last bits
+    assert not np.array_equal(runs[1, 1], runs[1, 2])
