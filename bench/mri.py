@@ -7,8 +7,8 @@ pipeline where every position is segmented before it is registered; the prone po
 correction is made untimed after the (supine) segmentation, standing for its own
 segmentation. On a shared machine the wall time is
 inflated by the other processes; the CPU time is the figure to compare between runs (with
-2 threads, wall >= CPU / 2 on a quiet machine). The registration's metric runs on one thread
-with a fixed sampling seed, so it gives the same transform on every run.
+2 threads, wall >= CPU / 2 on a quiet machine). The registration's metric runs on the
+``--threads`` threads with a fixed sampling seed, so it gives the same transform on every run.
 
 Usage::
 
@@ -19,7 +19,7 @@ With ``--runs N`` both stages run N times and the table gives the run of median 
 between two runs one after the other, the machine quiet.
 
 Each stage runs in its own process so that its peak memory (ru_maxrss) is its own. Prints a
-table and writes bench/results/mri.json.
+table and writes bench/results/mri.json (or ``--json``).
 """
 
 from __future__ import annotations

@@ -151,9 +151,9 @@ def register_rigid(
     notes: list[str] = []
     fid, used = _fiducial_fit(fixed_points, moving_points, notes, max_residual_mm=max_residual_mm)
     opts = dict(iterations=iterations, sampling=sampling, learning_rate_mm=learning_rate_mm,
-                seed=seeds[0], threads=threads)
+                threads=threads)  # the seeds are the repeats'
     how, starts = _start(fixed, moving, fid, initial, notes, fixed_mask=fixed_mask,
-                         shrink=shrink, smooth_mm=smooth_mm, opts=opts)
+                         shrink=shrink, smooth_mm=smooth_mm, opts=dict(opts, seed=seeds[0]))
     k = max(1, int(fine_levels))  # the start is close (fiducials, or moments + whole body)
     levels = dict(_fine(fixed, shrink[-k:], smooth_mm[-k:]), **opts)
     init, runs = _best_refined(fixed, moving, starts, notes, fixed_mask, levels, seeds)
@@ -290,8 +290,7 @@ def _set_loose(fixed, moving, init, walls, chest, notes, *, seeds, levels, balls
                      "(add fiducials on the sternum or check it by eye)")
         return walls
     second = add_balls(chest, balls, radius_mm) if balls else base
-    more = {k: v for k, v in levels.items() if k != "seed"}
-    others = refine_rigid_seeds(fixed, moving, init, seeds, fixed_mask=second, **more)
+    others = refine_rigid_seeds(fixed, moving, init, seeds, fixed_mask=second, **levels)
     out, shifts = zip(*(blend_loose(w, o, dirs) for w, (o, _) in zip(walls, others)))
     moved = float(np.mean(shifts))
     how = (f": set by the markers' refinement (moved {moved:.2f} mm)" if balls else
@@ -344,12 +343,11 @@ def _best_refined(fixed, moving, starts, notes, fixed_mask, levels, seeds):
     none used) the moments start refined over the body came to the wall 14 mm and 11 deg off
     (correlation -0.776), the scanner's frame to 1.4 mm (-0.950; the truth's transform
     refines to -0.951)."""
-    more = {k: v for k, v in levels.items() if k != "seed"}
     if len(starts) == 1:
         return starts[0][1], refine_rigid_seeds(fixed, moving, starts[0][1], seeds,
-                                                fixed_mask=fixed_mask, **more)
-    fits = [(name, start, *refine_rigid(fixed, moving, start, fixed_mask=fixed_mask, **levels))
-            for name, start in starts]
+                                                fixed_mask=fixed_mask, **levels)
+    fits = [(name, start, *refine_rigid(fixed, moving, start, fixed_mask=fixed_mask,
+                                        seed=seeds[0], **levels)) for name, start in starts]
     best = min(fits, key=lambda f: f[3])
     if best[3] > fits[0][3] - START_MARGIN:
         best = fits[0]
@@ -358,5 +356,5 @@ def _best_refined(fixed, moving, starts, notes, fixed_mask, levels, seeds):
                  f"(correlation {best[3]:.4f}; {others}; another replaces the first only "
                  f"where better by {START_MARGIN})")
     rest = refine_rigid_seeds(fixed, moving, best[1], seeds[1:], fixed_mask=fixed_mask,
-                              **more) if len(seeds) > 1 else []
+                              **levels) if len(seeds) > 1 else []
     return best[1], [(best[2], best[3]), *rest]
