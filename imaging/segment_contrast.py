@@ -12,7 +12,15 @@ import numpy as np
 import SimpleITK as sitk
 from scipy import ndimage
 
-from imaging.preprocess import background_of, body_box, check_volume, n4_correct, preprocess
+from imaging.preprocess import (
+    background_of,
+    body_box,
+    check_volume,
+    denoise,
+    n4_correct,
+    normalise,
+    preprocess,
+)
 from imaging.segment_regions import STAGE, SegmentationError
 
 #: Smallest accepted contrast-to-noise ratio between body (fat) and background.
@@ -222,16 +230,19 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
         if n4 and auto:  # the denoising may run twice: correct the bias once
             work, n4 = n4_correct(sitk.Cast(img, sitk.sitkFloat32), shrink=n4_shrink,
                                   cache=n4_cache), False
-        pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
-                         background=background, name=name,
+        raw = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache, name=name,
+                         normalise_intensity=False,
                          denoise_iterations=DENOISE_ITERATIONS if auto else its, **options)
+        pre = _normalised(raw, background, name)
         a = sitk.GetArrayViewFromImage(pre)
         seen = np.count_nonzero(np.abs(a[::2, ::2, ::2]) < 0.5) >= 100  # else air_noise guesses
         sigma = air_noise(a)[1] if seen else float("nan")
         if auto and sigma > NOISY_SIGMA:
-            pre = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache,
-                             background=background, name=name,
-                             denoise_iterations=2 * DENOISE_ITERATIONS, **options)
+            # The diffusion goes on from where it stopped: its conductance is rescaled at
+            # every iteration, so N more after N equal 2N from the start, bit for bit.
+            more = denoise(raw, iterations=DENOISE_ITERATIONS,
+                           method=options.get("denoise_method", "gradient"))
+            pre = _normalised(more, background, name)
             notes.append(f"noisy scan (background sigma {sigma:.3g} of the fat level after "
                          f"{DENOISE_ITERATIONS} denoising iterations > {NOISY_SIGMA}): "
                          f"denoised with {2 * DENOISE_ITERATIONS}")
@@ -240,6 +251,14 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
     except ValueError as exc:
         raise SegmentationError(str(exc)) from None
     return pre, work, box, sigma
+
+
+def _normalised(img, background, name):
+    """:func:`imaging.preprocess.normalise`, its error naming the volume."""
+    try:
+        return normalise(img, background=background)
+    except ValueError as exc:
+        raise ValueError(f"{exc} ({name})") from None
 
 
 def magnitude_level(fraction: float, background_over_fat: float) -> float:

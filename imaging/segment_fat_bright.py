@@ -24,6 +24,7 @@ from imaging.segment_regions import (
     _interior_median,
     _markers,
     _muscle_start,
+    dilated,
 )
 
 
@@ -210,7 +211,7 @@ def _refine_air(pre, a, sp, air, muscle0, marker_mask, *, t_air, t_dark, muscle_
     is the largest region left. Returns (air, body)."""
     feature = pre
     if muscle0.any() and t_dark < t_air:
-        near = ndimage.binary_dilation(muscle0, structure=_ball(muscle_min_mm, sp))
+        near = dilated(muscle0, _ball(muscle_min_mm, sp))
         scale = np.where(near, np.float32(t_air / max(t_dark, 1e-3)), np.float32(1.0))
         feature = sitk.GetImageFromArray(a * scale)
         feature.CopyInformation(pre)

@@ -24,6 +24,7 @@ from imaging.segment_regions import (
     _interior_median,
     _markers,
     _muscle_start,
+    dilated,
 )
 
 
@@ -72,7 +73,7 @@ def _fat_suppressed_regions(pre: sitk.Image, a: np.ndarray, sp: np.ndarray, note
         name=name)
     thorax = ndimage.binary_fill_holes(thorax) & body
     muscle_start = muscle.copy()
-    reach = ndimage.binary_dilation(muscle, structure=_ball(muscle_min_mm, sp))
+    reach = dilated(muscle, _ball(muscle_min_mm, sp))
     feature = _toward_thorax(pre, thorax, t_fat=t_fat, t_thorax=t_thorax)
     muscle = levelset_refine(feature, muscle, lower=t_fat, upper=np.inf, **ls)
     muscle &= body & reach & ~marker_mask

@@ -61,6 +61,29 @@ def _interior_median(a: np.ndarray, mask: np.ndarray, default: float) -> float:
     return float(np.median(vals)) if vals.size else default
 
 
+def bounding_box(mask: np.ndarray, margin) -> tuple[slice, ...] | None:
+    """The bounding box of ``mask`` grown by ``margin`` voxels per axis, within the array
+    (None: nothing in it). A distance map cropped to the box of its object grown by one
+    voxel equals the whole one there: every voxel outside the object is the box's or
+    farther than the box's face; at the array's faces the crop ends where the array does.
+    (Two distance maps over the whole volume took 3.8 of bench/mri.py's 21 s.)"""
+    found = ndimage.find_objects(mask.view(np.uint8))
+    if not found or found[0] is None:
+        return None
+    return tuple(slice(max(0, s.start - int(m)), min(n, s.stop + int(m)))
+                 for s, m, n in zip(found[0], margin, mask.shape))
+
+
+def dilated(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_dilation(mask, structure)`` computed on the box of ``mask`` grown by
+    the structure's reach: the same voxels, at the box's cost."""
+    out = np.zeros(mask.shape, bool)
+    box = bounding_box(mask, np.asarray(structure.shape) // 2 + 1)
+    if box is not None:
+        out[box] = ndimage.binary_dilation(mask[box], structure=structure)
+    return out
+
+
 def _components(mask: np.ndarray) -> tuple[np.ndarray, int]:
     return ndimage.label(mask)
 

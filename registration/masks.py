@@ -66,14 +66,24 @@ def chest_wall_masks(
         uint8 0/1 on the label map's grid, in the order of ``breast_margins_mm``.
     """
     lab = sitk.Cast(labels, sitk.sitkUInt8)
-    muscle = lab == 2
-    if sitk.GetArrayViewFromImage(muscle).max() == 0:
+    full = sitk.GetArrayViewFromImage(lab)
+    found = ndimage.find_objects((full == 2).view(np.uint8))
+    if not found or found[0] is None:
         raise ValueError(f"{STAGE}: the reference label map has no muscle (label 2) for the "
                          "chest-wall mask")
-    dist = sitk.SignedMaurerDistanceMap(muscle, insideIsPositive=False, squaredDistance=False,
-                                        useImageSpacing=True)
-    a = sitk.GetArrayFromImage(lab)
-    d = sitk.GetArrayFromImage(dist)
+    spz = np.asarray(lab.GetSpacing(), float)[::-1]
+    # Nothing farther from the muscle than the margins is in a mask: work on the muscle's
+    # box grown by them (and a voxel, so that its distance map equals the whole one there).
+    grow = np.ceil(max(margin_mm, *breast_margins_mm, 0.0) / spz).astype(int) + 2
+    box = tuple(slice(max(0, s.start - int(g)), min(n, s.stop + int(g)))
+                for s, g, n in zip(found[0], grow, full.shape))
+    cm = np.argwhere(full[::2, ::2, ::2] == 2).mean(axis=0)
+    cb = np.argwhere(np.isin(full[::2, ::2, ::2], (1, 3)))
+    a = np.ascontiguousarray(full[box])
+    sub = sitk.GetImageFromArray((a == 2).astype(np.uint8))
+    sub.SetSpacing(lab.GetSpacing())
+    d = sitk.GetArrayFromImage(sitk.SignedMaurerDistanceMap(
+        sub, insideIsPositive=False, squaredDistance=False, useImageSpacing=True))
     breast = (a == 1) | (a == 3)
     band = (d <= margin_mm) & (a != 2)
     # Band components that reach the breasts hold the space in front of the muscle (a
@@ -86,10 +96,7 @@ def chest_wall_masks(
     touches[0] = False
     front = touches[comp]
     if front.any():
-        spz = np.asarray(lab.GetSpacing(), float)[::-1]
-        cm = np.argwhere(a[::2, ::2, ::2] == 2).mean(axis=0)
-        cb = np.argwhere(breast[::2, ::2, ::2]).mean(axis=0)
-        toward = (cb - cm) * spz  # (z, y, x) mm, muscle -> breasts
+        toward = (cb.mean(axis=0) - cm) * spz  # (z, y, x) mm, muscle -> breasts
         toward /= max(np.linalg.norm(toward), 1e-9)
         facing = np.zeros(d.shape, np.float32)
         for i in range(3):
@@ -98,6 +105,8 @@ def chest_wall_masks(
     rigid = (a == 2) | (band & ~front)
     out = []
     for depth in breast_margins_mm:
-        out.append(sitk.GetImageFromArray((rigid | (breast & (d <= depth))).astype(np.uint8)))
+        m = np.zeros(full.shape, np.uint8)
+        m[box] = rigid | (breast & (d <= depth))
+        out.append(sitk.GetImageFromArray(m))
         out[-1].CopyInformation(lab)
     return out

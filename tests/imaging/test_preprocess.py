@@ -178,3 +178,19 @@ def test_body_box_keeps_mid_grey_tissue_below_the_otsu_threshold():
     index, size = body_box(img, margin_mm=2.0)
     assert index[0] <= 8 - 2 and index[0] + size[0] >= 50 + 2
     assert index[1] <= 18 and index[1] + size[1] >= 42
+
+
+@pytest.mark.parametrize("method", ["gradient", "curvature"])
+def test_denoising_goes_on_from_where_it_stopped_bit_for_bit(method):
+    """The segmentation's second denoising of a noisy scan goes on from the first's result
+    (:func:`imaging.segment_contrast.prepare_volume`): ITK's anisotropic diffusion rescales
+    its conductance at every iteration, so n more after n equal 2n from the start."""
+    img, _ = _block()
+    a = sitk.GetArrayFromImage(img)
+    noisy = sitk.GetImageFromArray(
+        a + np.random.default_rng(2).normal(0, 8.0, a.shape).astype(np.float32))
+    noisy.CopyInformation(img)
+    once = sitk.GetArrayFromImage(denoise(noisy, iterations=6, method=method))
+    twice = sitk.GetArrayFromImage(denoise(denoise(noisy, iterations=3, method=method),
+                                           iterations=3, method=method))
+    assert np.array_equal(once, twice)

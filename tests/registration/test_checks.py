@@ -398,3 +398,24 @@ def test_a_slide_within_the_fiducials_own_error_on_the_wall_keeps_the_refined_on
         assert p90 > 1.7
         assert status == "flagged" and used is refined
         assert any("9 times in 10" in n and "is kept" in n for n in notes)
+
+
+def test_chest_wall_masks_do_not_depend_on_the_background_around_the_label_map(tilted):
+    """The masks are made on the muscle's box grown by the margins: a label map with more
+    background round it (the muscle's box well inside) gives the same masks, placed alike."""
+    _, _, labels, *_ = tilted
+    from registration.masks import chest_wall_masks
+
+    lab = sitk.GetArrayFromImage(labels)
+    big = np.zeros(np.asarray(lab.shape) + 24, lab.dtype)
+    big[12:-12, 12:-12, 12:-12] = lab
+    wide = sitk.GetImageFromArray(big)
+    wide.SetSpacing(labels.GetSpacing())
+    wide.SetDirection(labels.GetDirection())
+    wide.SetOrigin(labels.TransformIndexToPhysicalPoint((-12, -12, -12)))
+    for small, large in zip(chest_wall_masks(labels, breast_margins_mm=(0.0, 4.0)),
+                            chest_wall_masks(wide, breast_margins_mm=(0.0, 4.0))):
+        a, b = sitk.GetArrayFromImage(small), sitk.GetArrayFromImage(large)
+        assert a.any()
+        assert np.array_equal(b[12:-12, 12:-12, 12:-12], a)
+        assert not b.sum() - a.sum()
