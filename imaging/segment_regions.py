@@ -67,7 +67,7 @@ def bounding_box(mask: np.ndarray, margin) -> tuple[slice, ...] | None:
     voxel equals the whole one there: every voxel outside the object is the box's or
     farther than the box's face; at the array's faces the crop ends where the array does.
     (Two distance maps over the whole volume took 3.8 of bench/mri.py's 21 s.)"""
-    found = ndimage.find_objects(mask.view(np.uint8))
+    found = ndimage.find_objects(np.asarray(mask, bool).view(np.uint8))
     if not found or found[0] is None:
         return None
     return tuple(slice(max(0, s.start - int(m)), min(n, s.stop + int(m)))

@@ -31,6 +31,9 @@ def test_a_box_is_the_object_s_grown_within_the_array():
     m = np.zeros((10, 12, 14), bool)
     m[0, 5:7, 12:] = True
     assert bounding_box(m, np.array([2, 1, 3])) == (slice(0, 3), slice(4, 8), slice(9, 14))
+    # any non-zero counts, whatever the array's type
+    assert bounding_box(m.astype(np.int64) * 7, np.zeros(3, int)) == (
+        slice(0, 1), slice(5, 7), slice(12, 14))
 
 
 def test_near_is_the_whole_volume_s_distance_on_the_voxels_asked_about():
