@@ -306,14 +306,25 @@ def background_of(img: sitk.Image) -> float:
     return float(np.median(a[~fg])) if (~fg).any() else float(a.min())
 
 
-def normalise(img: sitk.Image, *, background: float | None = None) -> sitk.Image:
+def normalise(img: sitk.Image, *, background: float | None = None,
+              name: str | None = None) -> sitk.Image:
     """Map the background level to 0 and the bright-tissue (fat) mode to 1 (float32).
 
     Background = median outside the Otsu foreground, so the scale ignores the amount of air
     (``background`` overrides it: a volume cropped to the body passes its whole volume's, as
     the crop holds less air and the median would move towards the dark tissues);
     the fat mode ignores small bright objects (markers) that a percentile would catch.
+    ``name`` (the file) is added to an error: "empty volume" alone is not actionable.
     """
+    try:
+        return _normalise(img, background)
+    except ValueError as exc:
+        if name is None:
+            raise
+        raise ValueError(f"{exc} ({name})") from None
+
+
+def _normalise(img: sitk.Image, background: float | None) -> sitk.Image:
     f = sitk.Cast(img, sitk.sitkFloat32)
     a = sitk.GetArrayViewFromImage(f)
     fg = sitk.GetArrayFromImage(foreground_mask(f)).astype(bool)
@@ -385,8 +396,5 @@ def preprocess(
     if denoise_iterations > 0:
         out = denoise(out, iterations=denoise_iterations, method=denoise_method)
     if normalise_intensity:
-        try:
-            out = normalise(out, background=background)
-        except ValueError as exc:  # name the file: "empty volume" alone is not actionable
-            raise ValueError(f"{exc} ({name})") from None
+        out = normalise(out, background=background, name=name)
     return out

@@ -233,7 +233,7 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
         raw = preprocess(work, n4=n4, n4_shrink=n4_shrink, n4_cache=n4_cache, name=name,
                          normalise_intensity=False,
                          denoise_iterations=DENOISE_ITERATIONS if auto else its, **options)
-        pre = _normalised(raw, background, name)
+        pre = normalise(raw, background=background, name=name)
         a = sitk.GetArrayViewFromImage(pre)
         seen = np.count_nonzero(np.abs(a[::2, ::2, ::2]) < 0.5) >= 100  # else air_noise guesses
         sigma = air_noise(a)[1] if seen else float("nan")
@@ -242,7 +242,7 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
             # every iteration, so N more after N equal 2N from the start, bit for bit.
             more = denoise(raw, iterations=DENOISE_ITERATIONS,
                            method=options.get("denoise_method", "gradient"))
-            pre = _normalised(more, background, name)
+            pre = normalise(more, background=background, name=name)
             notes.append(f"noisy scan (background sigma {sigma:.3g} of the fat level after "
                          f"{DENOISE_ITERATIONS} denoising iterations > {NOISY_SIGMA}): "
                          f"denoised with {2 * DENOISE_ITERATIONS}")
@@ -251,14 +251,6 @@ def prepare_volume(img, notes, *, crop, n4, n4_shrink, n4_cache, name, **options
     except ValueError as exc:
         raise SegmentationError(str(exc)) from None
     return pre, work, box, sigma
-
-
-def _normalised(img, background, name):
-    """:func:`imaging.preprocess.normalise`, its error naming the volume."""
-    try:
-        return normalise(img, background=background)
-    except ValueError as exc:
-        raise ValueError(f"{exc} ({name})") from None
 
 
 def magnitude_level(fraction: float, background_over_fat: float) -> float:

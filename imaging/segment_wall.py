@@ -176,7 +176,9 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
     none = np.zeros(muscle.shape, bool)
     if sp[posterior[0]] > 0.5 * skin_mm:  # no voxel of skin would lie past the margin
         return muscle, none
-    box = bounding_box(muscle, np.ones(3, int))
+    # one box for both distance maps: grown past skin_mm (near the air) and by at least
+    # one voxel (the muscle's own map)
+    box = bounding_box(muscle, np.ceil(skin_mm / sp).astype(int) + 1)
     if box is None or not air.any():
         return muscle, none
     half = _wall_half(ndimage.distance_transform_edt(muscle[box], sampling=sp), sp,
@@ -185,7 +187,7 @@ def skin_rim_off_muscle(muscle: np.ndarray, body: np.ndarray, thorax: np.ndarray
         return muscle, none
     tissue = body & ~thorax
     depth = _depth_from_back(muscle, ~muscle & ~tissue, sp, posterior)
-    near_air = _near(air, bounding_box(muscle, np.ceil(skin_mm / sp).astype(int) + 1), sp, skin_mm)
+    near_air = _near(air, box, sp, skin_mm)
     # beyond the wall's thickness in a run from the back, or in front of breast tissue that
     # lies in front of muscle
     wedge = np.isfinite(depth) & (depth > 2.0 * half + float(sp[posterior[0]]))

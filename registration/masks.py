@@ -77,8 +77,6 @@ def chest_wall_masks(
     grow = np.ceil(max(margin_mm, *breast_margins_mm, 0.0) / spz).astype(int) + 2
     box = tuple(slice(max(0, s.start - int(g)), min(n, s.stop + int(g)))
                 for s, g, n in zip(found[0], grow, full.shape))
-    cm = np.argwhere(full[::2, ::2, ::2] == 2).mean(axis=0)
-    cb = np.argwhere(np.isin(full[::2, ::2, ::2], (1, 3)))
     a = np.ascontiguousarray(full[box])
     sub = sitk.GetImageFromArray((a == 2).astype(np.uint8))
     sub.SetSpacing(lab.GetSpacing())
@@ -96,7 +94,10 @@ def chest_wall_masks(
     touches[0] = False
     front = touches[comp]
     if front.any():
-        toward = (cb.mean(axis=0) - cm) * spz  # (z, y, x) mm, muscle -> breasts
+        every2 = full[::2, ::2, ::2]  # centroids of the whole map, as before the crop
+        cm = np.argwhere(every2 == 2).mean(axis=0)
+        cb = np.argwhere((every2 == 1) | (every2 == 3)).mean(axis=0)
+        toward = (cb - cm) * spz  # (z, y, x) mm, muscle -> breasts
         toward /= max(np.linalg.norm(toward), 1e-9)
         facing = np.zeros(d.shape, np.float32)
         for i in range(3):

@@ -14,6 +14,7 @@ from mri_synth import Slab, chest_points, euler, render, write_subject
 
 from imaging.preprocess import preprocess
 from registration.checks import fle_estimate, wall_difference_null
+from registration.masks import chest_wall_masks
 from registration.qa import rotation_error_deg, target_registration_error
 from registration.rigid import (
     check_registration,
@@ -404,8 +405,6 @@ def test_chest_wall_masks_do_not_depend_on_the_background_around_the_label_map(t
     """The masks are made on the muscle's box grown by the margins: a label map with more
     background round it (the muscle's box well inside) gives the same masks, placed alike."""
     _, _, labels, *_ = tilted
-    from registration.masks import chest_wall_masks
-
     lab = sitk.GetArrayFromImage(labels)
     big = np.zeros(np.asarray(lab.shape) + 24, lab.dtype)
     big[12:-12, 12:-12, 12:-12] = lab
