@@ -209,13 +209,17 @@ def test_adding_the_effect_lowers_the_worst_position_by_half(hidden_skin, capsys
 
 def test_a_candidate_whose_re_fit_does_not_lower_the_worst_mhd_is_not_confirmed(monkeypatch):
     """The nonlinear check decides: a significant candidate whose real re-fit leaves the
-    worst MHD where it was loses its significance, with the reason, and the next
-    significant one is checked; not-significant candidates are never re-fitted."""
+    worst MHD of the scored positions where it was loses its significance, with the reason,
+    and the next significant one is checked; not-significant candidates are never
+    re-fitted. The reference (supine here), which the stress-free inverse reproduces and a
+    measurement candidate does not correct, is not a scored position: its MHD decides
+    nothing."""
     from types import SimpleNamespace
 
     import breastmodel.diagnosis.missing as M
 
-    after = {"a": {"prone": 1.0, "supine": 1.12}, "b": {"prone": 0.9, "supine": 0.8}}
+    after = {"a": {"prone": 1.0, "supine_tilted": 1.12, "supine": 0.2},
+             "b": {"prone": 0.9, "supine_tilted": 0.8, "supine": 2.0}}
     refits = []
 
     def fake_verify(c, entry, *args):
@@ -227,9 +231,10 @@ def test_a_candidate_whose_re_fit_does_not_lower_the_worst_mhd_is_not_confirmed(
                for n, sig in (("a", True), ("c", False), ("b", True))]
     cands = [SimpleNamespace(name=n) for n in "abc"]
     run = SimpleNamespace(config={}, model={})
-    M._verify_best(ranking, cands, run, [], ["prone"], ["prone", "supine"], None,
-                   base_mhd={"prone": 1.0, "supine": 1.10}, verify_top=1, verify_budget=4,
-                   progress=False)
+    M._verify_best(ranking, cands, run, [], ["prone", "supine_tilted"],
+                   ["prone", "supine", "supine_tilted"], None,
+                   base_mhd={"prone": 1.0, "supine_tilted": 1.10, "supine": 0.3},
+                   verify_top=1, verify_budget=4, progress=False)
     assert refits == ["a", "b"]
     assert not ranking[0]["significant"] and ranking[2]["significant"]
     assert ranking[0]["unconfirmed"] == {"worst_mhd_before_mm": 1.10, "worst_mhd_after_mm": 1.12}
