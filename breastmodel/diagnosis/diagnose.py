@@ -187,6 +187,7 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
             vtxt += (f" (not confirmed: worst {r['unconfirmed']['worst_mhd_before_mm']:.2f}"
                      f" -> {r['unconfirmed']['worst_mhd_after_mm']:.2f})")
         ho = "; ".join(f"{p} {v['rms_before_mm']:.2f}->{v['rms_after_mm']:.2f}"
+                       + (f" (moved {v['change_rms_mm']:.2f})" if "change_rms_mm" in v else "")
                        for p, v in (r.get("held_out") or {}).items()) or "n/a"
         rows.append([i, r["name"], r["kind"], r.get("n_parameters", ""),
                      "yes" if r["significant"] else "no", f"{100 * r['explained']:.0f} %",
@@ -194,7 +195,8 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
                      *[r["predicted"][p]["rms_mm"] for p in pos], ho, est, ev, vtxt])
     parts.append(_table(["#", "candidate", "kind", "k", "explains more than noise",
                          "explained", "&Delta;BIC", "predicted RMS",
-                         *[f"RMS {p}" for p in pos], "held out (RMS)", "estimate",
+                         *[f"RMS {p}" for p in pos], "held out (RMS; how far it moves it)",
+                         "estimate",
                          "evidence (region RMS before->after)",
                          "MHD after a real re-fit with it (mm)"], rows, raw_header=True))
     return parts
