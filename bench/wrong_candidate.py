@@ -48,13 +48,13 @@ def _n_fitted(cfg: dict) -> int:
     return len(cfg["fit"]["parameters"]) if cfg["fit"].get("enabled") else 0
 
 
-def refit(run_dir: Path, name: str, out: Path) -> dict:
-    """``run_dir``'s model with candidate ``name`` switched on, refitted as the run was."""
-    run = load_run(run_dir)
-    base = from_run_config(run_dir)
-    cfg = add_effect(base, name, run_dir)
+def refit(run, name: str, out: Path) -> dict:
+    """The finished ``run``'s model with candidate ``name`` switched on, refitted as the run
+    was."""
+    base = from_run_config(run.out)
+    cfg = add_effect(base, name, run.out)
     t0 = time.perf_counter()
-    res = run_problem(run.problem_dir, cfg, out, progress=False, cache=cache_of(run_dir))
+    res = run_problem(run.problem_dir, cfg, out, progress=False, cache=cache_of(run.out))
     params = json.loads((out / "params.json").read_text())
     return {"candidate": name, "added_parameters": _n_fitted(cfg) - _n_fitted(base),
             "mhd_mm": _mhd(res["metrics"]), "params": params.get("parameters"),
@@ -68,7 +68,7 @@ def study(run_dir: Path, names: list[str], right: str | None, work: Path) -> dic
     before = _mhd(run.metrics)
     rows = []
     for name in names:
-        r = refit(run_dir, name, work / f"{run_dir.parent.name}-{name.replace(':', '_')}")
+        r = refit(run, name, work / f"{run_dir.parent.name}-{name.replace(':', '_')}")
         r["right"] = name == right
         r["held_out"] = {p: {"before_mm": before[p], "after_mm": r["mhd_mm"][p]} for p in held
                          if p in before and p in r["mhd_mm"]}

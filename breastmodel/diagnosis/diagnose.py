@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from breastmodel.diagnosis.scoring import answer
+from breastmodel.diagnosis.scoring import HELD_OUT_MIN_CHANGE_MM, answer
 
 __all__ = ["diagnose", "write_diagnosis_html"]
 
@@ -173,7 +173,8 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
         "more than the noise when &Delta;BIC &lt; -6, it removes at least 20 % of the squared "
         "residual and a quarter of the noise floor. Held out: the RMS of a position the run "
         "did not calibrate on, re-fitted on the calibration positions only, without -> with "
-        "the candidate (a real effect improves it too).</p>")
+        "the candidate (a real effect improves it too), and how far the candidate moves it: "
+        f"a position moved by less than {HELD_OUT_MIN_CHANGE_MM:g} mm RMS cannot test it.</p>")
     pos = miss["objective_positions"]
     rows = []
     for i, r in enumerate(miss["ranking"], 1):
@@ -187,7 +188,7 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
             vtxt += (f" (not confirmed: worst {r['unconfirmed']['worst_mhd_before_mm']:.2f}"
                      f" -> {r['unconfirmed']['worst_mhd_after_mm']:.2f})")
         ho = "; ".join(f"{p} {v['rms_before_mm']:.2f}->{v['rms_after_mm']:.2f}"
-                       + (f" (moved {v['change_rms_mm']:.2f})" if "change_rms_mm" in v else "")
+                       + f" (moved {v['change_rms_mm']:.2f})"
                        for p, v in (r.get("held_out") or {}).items()) or "n/a"
         rows.append([i, r["name"], r["kind"], r.get("n_parameters", ""),
                      "yes" if r["significant"] else "no", f"{100 * r['explained']:.0f} %",

@@ -87,7 +87,6 @@ from breastmodel.diagnosis.residual import (
     measured_geometry,
 )
 from breastmodel.diagnosis.scoring import (
-    HELD_OUT_MIN_CHANGE_MM,
     SIGNIFICANT_FLOOR_FRACTION,
     SIGNIFICANT_MIN_MM,
     answer,
@@ -384,7 +383,7 @@ def _verdict(best: Mapping[str, Any], rms_base: float) -> str:
     held = "".join(
         f"; fitted on the calibration positions alone it changes the held-out {p} RMS from "
         f"{v['rms_before_mm']:.3f} to {v['rms_after_mm']:.3f} mm"
-        + ("" if v.get("change_rms_mm", 1.0) >= HELD_OUT_MIN_CHANGE_MM else
+        + ("" if v["tests"] else
            f" (it moves that position by {v['change_rms_mm']:.3f} mm RMS only, too little "
            "to test it there)")
         for p, v in (best.get("held_out") or {}).items())

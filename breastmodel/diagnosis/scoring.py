@@ -162,17 +162,9 @@ def _score(c: Candidate, columns, lin: Linearisation, base: Baseline, plan: Plan
             entry["acted_rms_drop_mm"] > entry["model_misfit_mm"])
     if base.held_out and acts & set(base.calibrate):
         r_h = lin.solve(cols, lo, hi, inert=c.replaces, rows=base.cal_rows)[0]
-        entry["held_out"] = {
-            p: {"rms_before_mm": rms(base.r_base_cal[lin.slices[p]]),
-                "rms_after_mm": rms(r_h[lin.slices[p]]),
-                # how far the candidate moves the position's prediction at all: a position
-                # it hardly moves cannot test it
-                "change_rms_mm": rms(r_h[lin.slices[p]] - base.r_base_cal[lin.slices[p]])}
-            for p in base.held_out}
-        # the positions that can test it: those its fitted prediction moves far enough to
-        # show the least drop
-        testing = {p: v for p, v in entry["held_out"].items()
-                   if v["change_rms_mm"] >= HELD_OUT_MIN_CHANGE_MM}
+        entry["held_out"] = {p: _held_out(base.r_base_cal[lin.slices[p]], r_h[lin.slices[p]])
+                             for p in base.held_out}
+        testing = {p: v for p, v in entry["held_out"].items() if v["tests"]}
         entry["held_out_improves"] = bool(testing) and all(
             v["rms_after_mm"] < v["rms_before_mm"] - SIGNIFICANT_MIN_MM
             for v in testing.values())
@@ -189,6 +181,15 @@ def _score(c: Candidate, columns, lin: Linearisation, base: Baseline, plan: Plan
     if c.measurement == "rigid":
         entry["transform"] = rigid_transform(z_c, geometry[c.acts_on[0]]["y"])
     return entry, r_c - base.r_base
+
+
+def _held_out(before: np.ndarray, after: np.ndarray) -> dict:
+    """One held-out position's RMS without and with the candidate (re-fitted on the
+    calibration positions), how far the candidate moves its prediction at all, and whether
+    that is far enough for the position to test it (``HELD_OUT_MIN_CHANGE_MM``)."""
+    change = rms(after - before)
+    return {"rms_before_mm": rms(before), "rms_after_mm": rms(after), "change_rms_mm": change,
+            "tests": change >= HELD_OUT_MIN_CHANGE_MM}
 
 
 #: A candidate that the data do not call significant but whose re-fit moves a fitted
