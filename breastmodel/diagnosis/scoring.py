@@ -39,8 +39,8 @@ SIGNIFICANT_BIC = 6.0
 #: its held-out position is tilted 3 deg from the reference, which the stress-free inverse
 #: reproduces whatever the moduli, so the asymmetry moved it by 0.027 mm RMS (0.375 -> 0.368)
 #: and the least drop rejected the right answer (explained 36 %, delta BIC -20.6); the
-#: demo's muscle modulus moved its held-out position by 0.44 mm and made it worse (1.026 ->
-#: 1.038), the asymmetry there by 0.79 mm (1.026 -> 0.728).
+#: demo's muscle modulus (its slow test's 10 mm mesh) moved the held-out position by 0.44
+#: mm and made it worse (1.026 -> 1.038), the asymmetry there by 0.79 mm (1.026 -> 0.728).
 HELD_OUT_MIN_CHANGE_MM = 2.0 * SIGNIFICANT_MIN_MM
 #: A misregistration (six rigid parameters on one position, which the held-out position
 #: cannot test) must also lower its position's RMS by more than the residual RMS the model
