@@ -35,15 +35,17 @@ from breastmodel.pipeline.model_stages import (
     check_landmarks,
     fit_stage,
     fit_start,
-    n_tets,
     predict_stage,
     stress_free_stage,
 )
+from breastmodel.pipeline.refinement import refinement_check
 from breastmodel.pipeline.runner import Prepared, Runner, RunResult
 from breastmodel.pipeline.subject_stages import (
+    mesh_key,
     mesh_options,
     mesh_stage,
     problem_stage,
+    reference_labels,
     register_stage,
     segment_stage,
     skins_stage,
@@ -127,7 +129,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
     R = Runner(out, progress, cache)
 
     seg_cfg = {"preprocess": cfg["preprocess"], "segment": cfg["segment"]}
-    ref, mesh_cfg = subject.reference, _mesh_key(cfg["mesh"])
+    ref, mesh_cfg = subject.reference, mesh_key(cfg["mesh"])
     seg_dirs, seg_keys, job = {}, {}, None
     with contextlib.ExitStack() as background:
         # the reference first: its mesh runs beside the other positions' segmentation and
@@ -139,7 +141,7 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
             _say_doubts(seg_dirs[pos], pos)
             if pos == ref and not R.done("mesh", mesh_cfg, [seg_keys[ref]]):
                 job = background.enter_context(mesh_in_background(
-                    _labels(seg_dirs, ref), **mesh_options(cfg)))
+                    reference_labels(seg_dirs, ref), **mesh_options(cfg)))
         if said := contrast_doubt(seg_dirs):
             log.warning("segment: %s", said)
         sub_files = [subject.root / "subject.toml"] + [
@@ -152,13 +154,13 @@ def prepare_subject(subject_dir: str | Path, cfg: Mapping[str, Any], out: str | 
                                    register_stage(subject, seg_dirs, cfg))
         skins_dir, skins_key = R.stage("skins", {"surface": cfg["surface"]}, [reg_key],
                                        skins_stage(subject, reg_dir, cfg), label="measured skins")
-        mesh_dir, mesh_key = R.stage("mesh", mesh_cfg, [seg_keys[ref]],
-                                     mesh_stage(_labels(seg_dirs, ref), mesh_options(cfg),
+        mesh_dir, m_key = R.stage("mesh", mesh_cfg, [seg_keys[ref]],
+                                     mesh_stage(reference_labels(seg_dirs, ref), mesh_options(cfg),
                                                 job),
                                      label=f"mesh {ref}")
     lm = [subject.root / "landmarks.csv"] if (subject.root / "landmarks.csv").is_file() else []
     inputs = (reg_key, skins_key, *lm)
-    prob_dir, prob_key = R.stage("problem", {}, [mesh_key, *inputs],
+    prob_dir, prob_key = R.stage("problem", {}, [m_key, *inputs],
                                  problem_stage(subject, reg_dir, mesh_dir, skins_dir))
     return Prepared(subject, positions, R, prob_dir, prob_key, reg_dir, seg_dirs, inputs,
                     seg_keys)
@@ -172,19 +174,6 @@ def _say_doubts(seg_dir: Path, position: str) -> None:
     if warnings:
         log.warning("segment %s: %s (look at %s)", position, "; ".join(warnings),
                     Path(seg_dir) / f"{position}_qa.png")
-
-
-def _mesh_key(mesh: Mapping[str, Any]) -> dict:
-    """What the mesh stage is keyed on: the ``[mesh]`` table and the named sets' version (a
-    cached mesh without the sets the model now reads is made again)."""
-    from meshing.sets import SETS_VERSION
-
-    return {"mesh": mesh, "sets": SETS_VERSION}
-
-
-def _labels(seg_dirs: Mapping[str, Path], pos: str) -> Path:
-    """A position's label map in its segmentation stage."""
-    return seg_dirs[pos] / f"{pos}_labels.nii.gz"
 
 
 def _segment_inputs(subject, pos: str, cfg: Mapping[str, Any]) -> list:
@@ -245,48 +234,6 @@ def run_problem(problem_dir: str | Path, cfg: Mapping[str, Any], out: str | Path
     return _model_stages(prep, cfg, out, t0)
 
 
-def _refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str, Any],
-                      pred_dirs: Mapping[str, Path]) -> dict:
-    """The prediction at the model's (fitted) parameters again on a mesh of half the edge
-    length: the change of each position's MHD bounds what the mesh size costs.
-
-    Returns
-    -------
-    dict
-        ``size_mm``, ``fine_size_mm``, ``n_tets``, ``fine_n_tets`` and per position
-        ``mhd_mm``, ``fine_mhd_mm``, ``change_mm`` (fine minus default); or ``skipped`` with
-        the reason (a given problem folder has no label map to remesh).
-    """
-    if prep.register_dir is None:
-        return {"skipped": "a given problem folder has no label map to remesh"}
-    meta = json.loads((prep.problem_dir / "problem.json").read_text())
-    R, h = prep.runner, float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
-    fine = {**cfg, "mesh": {**cfg["mesh"], "size_mm": h / 2}}
-    ref = prep.subject.reference
-    mesh_dir, mesh_key = R.stage("mesh", _mesh_key(fine["mesh"]), [prep.segment_keys[ref]],
-                                 mesh_stage(_labels(prep.segment_dirs, ref), mesh_options(fine)),
-                                 label=f"refinement: mesh {h / 2:g} mm")
-    # the measured skins are the default problem's (they do not depend on the mesh)
-    prob_dir, prob_key = R.stage("problem", {}, [mesh_key, *prep.problem_inputs],
-                                 problem_stage(prep.subject, prep.register_dir, mesh_dir,
-                                               prep.problem_dir),
-                                 label=f"refinement: problem {h / 2:g} mm")
-    sf_dir, sf_key = R.stage("stress_free", {"model": model, "stress_free": cfg["stress_free"],
-                                             "solver": cfg["solver"]}, [prob_key],
-                             stress_free_stage(prob_dir, cfg, model, R.progress),
-                             label="refinement: stress-free")
-    out = {"size_mm": h, "fine_size_mm": h / 2, "positions": {},
-           "n_tets": n_tets(prep.problem_dir), "fine_n_tets": n_tets(prob_dir)}
-    for pos, d in pred_dirs.items():
-        fd, _ = R.stage("predict", {"position": pos, "model": model, "solver": cfg["solver"]},
-                        [prob_key, sf_key], predict_stage(prob_dir, sf_dir, pos, cfg, model),
-                        label=f"refinement: predict {pos}")
-        a = json.loads((d / "metrics.json").read_text())["mhd_mm"]
-        b = json.loads((fd / "metrics.json").read_text())["mhd_mm"]
-        out["positions"][pos] = {"mhd_mm": a, "fine_mhd_mm": b, "change_mm": b - a}
-    return out
-
-
 @dataclass(frozen=True)
 class _ProblemSubject:
     id: str
@@ -330,7 +277,7 @@ def _model_stages(prep: Prepared, cfg: Mapping[str, Any], out: Path, t0: float) 
 
     refinement = None
     if cfg["evaluate"]["refinement"]:
-        refinement = _refinement_check(prep, cfg, model, pred_dirs)
+        refinement = refinement_check(prep, cfg, model, pred_dirs)
 
     paths = sorted({p for p in (cfg["fit"]["parameters"] or {})} | {
         f"materials.{r}.E" for r in model["materials"]})

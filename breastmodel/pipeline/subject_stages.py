@@ -215,3 +215,16 @@ def _field_of_view(mesh_path: Path, labels_path: Path, reference: str) -> dict:
     if warning:
         log.warning("%s", warning)
     return {"cut": cut, "warning": warning}
+
+
+def mesh_key(mesh: Mapping[str, Any]) -> dict:
+    """What the mesh stage is keyed on: the ``[mesh]`` table and the named sets' version (a
+    cached mesh without the sets the model now reads is made again)."""
+    from meshing.sets import SETS_VERSION
+
+    return {"mesh": mesh, "sets": SETS_VERSION}
+
+
+def reference_labels(seg_dirs: Mapping[str, Path], pos: str) -> Path:
+    """A position's label map in its segmentation stage."""
+    return seg_dirs[pos] / f"{pos}_labels.nii.gz"
