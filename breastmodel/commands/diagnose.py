@@ -9,9 +9,10 @@ parameter it holds fixed, ranked by how much of the residual it explains after r
 with the predicted error per position, the evidence per region, a real check of the best
 candidate, and a plain verdict when nothing explains more than the noise floor. Errors of
 the measurement are candidates too: a rigid misregistration of each position and an offset
-of the measured skin. Every candidate's score charges its parameters (an information
-criterion) and is checked on the position the run held out; every model evaluation has a
-budget of forward solves and seconds.
+of the measured skin; and so is the mesh (mesh_refinement: the fitted model again on a mesh
+of half the edge length, cached in the run; --no-refinement skips it). Every candidate's
+score charges its parameters (an information criterion) and is checked on the position the
+run held out; every model evaluation has a budget of forward solves and seconds.
 Model evaluations are stored in ``DIR/diagnosis/evaluations`` (a rerun resumes).
 """
 
@@ -45,6 +46,11 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="seconds one model evaluation may spend (default: 3x the fitted "
                         "model's own evaluation, at least 20 s); an evaluation that spends "
                         "its budget fails with the reason and the others still answer")
+    p.add_argument("--no-refinement", dest="refine", action="store_false",
+                   help="do not probe the mesh (the candidate mesh_refinement: the fitted "
+                        "model again on a mesh of half the edge length, about 8x the tets; "
+                        "cached in the run, so a run made with [evaluate] refinement = true "
+                        "has it already)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -54,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
 
     d = diagnose(args.run_dir, n_workers=args.workers, scheduler=args.scheduler,
                  verify_top=args.verify_top, rim_mm=args.rim_mm, max_solves=args.max_solves,
-                 max_seconds=args.max_seconds, progress=not args.quiet)
+                 max_seconds=args.max_seconds, refine=args.refine, progress=not args.quiet)
     m = d["missing"]
     print(m["verdict"])
     print(f"{'#':>3} {'candidate':<40} {'k':>2} {'explained':>9} {'dBIC':>7} {'pred. RMS':>9}"

@@ -23,7 +23,8 @@ __all__ = ["diagnose", "write_diagnosis_html"]
 
 def diagnose(run_dir: str | Path, *, n_workers: int = 0, scheduler: str | None = None,
              verify_top: int = 1, rim_mm: float | None = None, max_solves: int | None = None,
-             max_seconds: float | None = None, progress: bool = True) -> dict:
+             max_seconds: float | None = None, refine: bool = True,
+             progress: bool = True) -> dict:
     """Diagnose the run in ``run_dir``; returns what ``diagnosis.json`` holds.
 
     The options are those of :func:`~breastmodel.diagnosis.missing.rank_candidates`.
@@ -45,7 +46,8 @@ def diagnose(run_dir: str | Path, *, n_workers: int = 0, scheduler: str | None =
     kw = {} if rim_mm is None else {"rim_mm": rim_mm}
     missing = rank_candidates(run, n_workers=n_workers, scheduler=scheduler,
                               verify_top=verify_top, progress=progress,
-                              max_solves=max_solves, max_seconds=max_seconds, **kw)
+                              max_solves=max_solves, max_seconds=max_seconds,
+                              refine=refine, **kw)
     out = {"subject": run.subject, "run": str(run.out), "where": where, "missing": missing}
     write_json(run.out / "diagnosis.json", out)
     write_diagnosis_html(run.out / "diagnosis.html", out, maps)
@@ -165,9 +167,11 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
     parts.append(
         "<p>Physical effects the model does not use, parameters it holds fixed, and errors of "
         "the measurement itself (a rigid misregistration of one position: 6 parameters; an "
-        "offset of the measured skin: 1), each scored by the residual left after a linear "
-        "re-fit with it. &Delta;BIC = n<sub>eff</sub> ln(SS/SS<sub>0</sub>) + k "
-        f"ln(n<sub>eff</sub>) charges every added parameter (n<sub>eff</sub> = "
+        "offset of the measured skin: 1) and of the mesh (mesh_refinement: the fitted model "
+        "on a mesh of half the edge length, its amount fixed), each scored by the residual "
+        "left after a linear re-fit with it. &Delta;BIC = n<sub>eff</sub> "
+        "ln(SS/SS<sub>0</sub>) + k ln(n<sub>eff</sub>) charges every added parameter "
+        "(n<sub>eff</sub> = "
         f"{miss.get('n_effective', float('nan')):.0f} independent residuals of "
         f"{miss['n_scored_nodes'] * len(miss['objective_positions'])}); a candidate explains "
         "more than the noise when &Delta;BIC &lt; -6, it removes at least 20 % of the squared "
@@ -224,6 +228,8 @@ def _next_step(diag: Mapping[str, Any]) -> list:
     effect and compare (none significant: nothing)."""
     miss = diag["missing"]
     best = answer(miss["ranking"])
+    if best is not None and best.get("measurement") == "refinement":
+        return [f"<h2>3. Refine the mesh</h2><p>{html.escape(miss['verdict'])}.</p>"]
     if best is not None and best.get("measurement"):
         return ["<h2>3. Correct the measurement</h2><p>"
                 f"{html.escape(miss['verdict'])}. The estimate: "

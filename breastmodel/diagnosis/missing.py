@@ -64,7 +64,6 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -79,6 +78,7 @@ from breastmodel.diagnosis.evaluations import (
     variant_point,
 )
 from breastmodel.diagnosis.measurement import measurement_candidates
+from breastmodel.diagnosis.mesh_probe import add_mesh_candidate
 from breastmodel.diagnosis.residual import (
     Baseline,
     Linearisation,
@@ -93,8 +93,9 @@ from breastmodel.diagnosis.scoring import (
     confounders,
     confounding_sentence,
     score_candidates,
+    verdict_sentence,
 )
-from breastmodel.diagnosis.verify import verify_effect, verify_measurement
+from breastmodel.diagnosis.verify import verify_effect, verify_measurement, verify_refinement
 
 __all__ = ["evaluate_model", "rank_candidates", "SIGNIFICANT_FLOOR_FRACTION"]
 
@@ -109,7 +110,7 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                     candidates: Sequence[Candidate] | None = None,
                     rim_mm: float = RIM_MM, verify_budget: int = 12,
                     max_solves: int | None = None, max_seconds: float | None = None,
-                    progress: bool = True) -> dict:
+                    refine: bool = True, progress: bool = True) -> dict:
     """Score every candidate missing effect of a finished run.
 
     Parameters
@@ -127,6 +128,8 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
     max_solves, max_seconds : the budget of every variant's evaluation (forward solves,
         seconds); default from the fitted model's own evaluation (:func:`default_budget`).
         A variant that spends it fails with the reason, and the others still answer.
+    refine : probe the mesh (``mesh_refinement``: the fitted model on a mesh of half the edge
+        length, :mod:`.mesh_probe`; not within the budget above)
 
     Returns
     -------
@@ -168,14 +171,31 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
                           floor_min_mm=SIGNIFICANT_MIN_MM)
     # the measured skin's geometry (non-physical candidates' columns)
     geometry = measured_geometry(problem, ev.base_state, nodes, keep, obj_pos)
+    probe = None
     if default_candidates:
-        candidates = list(candidates) + measurement_candidates(obj_pos)
+        extra, probe = _non_physical(run, ev.base_state, nodes, keep, obj_pos, geometry,
+                                     skipped, refine=refine, progress=progress)
+        candidates = list(candidates) + extra
     ranking, failed, corrections = score_candidates(candidates, lin, base, plan, geometry)
+    for r in ranking:
+        r.update({"probe": probe} if r["measurement"] == "refinement" else {})
     _verify_best(ranking, candidates, run, fitted, obj_pos, positions, work_dir,
                  base_mhd=ev.records["base"]["result"]["mhd_mm"], verify_top=verify_top,
                  verify_budget=verify_budget, progress=progress)
     return _result(run, ev, lin, base, plan, ranking, corrections, skipped=skipped,
                    failed=failed, fitted=fitted, obj_pos=obj_pos, rim_mm=rim_mm)
+
+
+def _non_physical(run, state, nodes, keep, obj_pos, geometry, skipped: list, *, refine: bool,
+                  progress: bool) -> tuple[list[Candidate], dict | None]:
+    """The candidates that are no physics: errors of the measured skin, and the mesh probe
+    (with the probe's sizes and folder; where there is none, ``skipped`` says why)."""
+    mesh, probe = add_mesh_candidate(run, state, nodes, keep, obj_pos, geometry,
+                                     refine=refine, progress=progress)
+    if mesh is None:
+        skipped.append(probe)
+        return measurement_candidates(obj_pos), None
+    return measurement_candidates(obj_pos) + [mesh], probe
 
 
 @dataclass
@@ -291,7 +311,8 @@ def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, ob
         if not r["significant"]:
             continue
         tried += 1
-        verify = verify_measurement if r["measurement"] else verify_effect
+        verify = {"": verify_effect, "refinement": verify_refinement}.get(r["measurement"],
+                                                                         verify_measurement)
         r["verified"] = verify(by_name[r["name"]], r, run, fitted, obj_pos, positions,
                                work_dir, verify_budget, progress)
         after = r["verified"].get("mhd_mm") or {}
@@ -316,7 +337,7 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
     base_mhd = ev.records["base"]["result"]["mhd_mm"]
     best = answer(ranking)
     if best is not None:
-        verdict = _verdict(best, base.rms_base)
+        verdict = verdict_sentence(best, base.rms_base)
     else:
         worst = sorted(base.regions.items(), key=lambda kv: -kv[1])[:3]
         carriers = ", ".join(f"{k} ({v:.2f} mm)" for k, v in worst)
@@ -360,31 +381,3 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
         "n_evaluations": len(ev.points) + 1 + sum(r.get("verified", {}).get("evaluations", 0)
                                               for r in ranking), "verdict": verdict,
     }
-
-
-def _verdict(best: Mapping[str, Any], rms_base: float) -> str:
-    """One sentence about the best significant candidate."""
-    gain = (f"adding it is predicted to lower the residual RMS from {rms_base:.3f} to "
-            f"{best['predicted_rms_mm']:.3f} mm ({100 * best['explained']:.0f} % of the squared "
-            "residual explained)")
-    if best["measurement"] == "rigid":
-        pos, tr = best["acts_on"][0], best["transform"]
-        return (f"{pos} looks misregistered by about {tr['max_displacement_mm']:.1f} mm "
-                f"(translation {tr['translation_mm']:.1f} mm, rotation {tr['angle_deg']:.1f} "
-                f"deg; correcting it lowers the residual RMS from {rms_base:.3f} to "
-                f"{best['predicted_rms_mm']:.3f} mm): rerun `breastmodel register` for {pos} "
-                "(check its fiducials and the chest-wall correlation), then the run")
-    if best["measurement"] == "offset":
-        s = best["estimate"]["measured.offset_mm"]
-        return (f"the measured skin looks offset by {abs(s):.2f} mm "
-                f"{'inwards' if s > 0 else 'outwards'} in every position (segmentation bias: "
-                f"correcting it lowers the residual RMS from {rms_base:.3f} to "
-                f"{best['predicted_rms_mm']:.3f} mm): check the skin threshold of `segment`")
-    held = "".join(
-        f"; fitted on the calibration positions alone it changes the held-out {p} RMS from "
-        f"{v['rms_before_mm']:.3f} to {v['rms_after_mm']:.3f} mm"
-        + ("" if v["tests"] else
-           f" (it moves that position by {v['change_rms_mm']:.3f} mm RMS only, too little "
-           "to test it there)")
-        for p, v in (best.get("held_out") or {}).items())
-    return f"missing effect: {best['name']} ({best['doc']}); {gain}{held}"

@@ -116,3 +116,23 @@ def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_
     best = res["best"]
     return {"mhd_mm": best["mhd_mm"], "objective_mm": best["objective"],
             "params": best["params"], "evaluations": res["n_simulations"]}
+
+
+def verify_refinement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos,
+                      positions, work_dir: Path, budget: int, progress: bool) -> dict:
+    """The fitted model on the probe's finer mesh (``entry["probe"]["problem_dir"]``) at the
+    fitted parameters of the linear estimate: one real evaluation (a re-fit on the fine mesh
+    would cost ``budget`` evaluations of a mesh eight times the run's)."""
+    from breastmodel.pipeline.config import set_params
+    from breastmodel.pipeline.problem import evaluate_params
+
+    cfg = run.config
+    est = {q: float(entry["estimate"][q]) for q in fitted if q in entry["estimate"]}
+    settings = {"model": set_params(run.model, est), "solver": cfg["solver"],
+                "stress_free": cfg["stress_free"], "calibrate": list(obj_pos),
+                "evaluate": [p for p in positions if p not in obj_pos]}
+    rec = evaluate_params({}, Path(entry["probe"]["problem_dir"]), settings)
+    if rec["error"]:
+        return {"error": rec["error"]}
+    return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"], "params": est,
+            "evaluations": 1}

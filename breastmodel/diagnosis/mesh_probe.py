@@ -1,0 +1,145 @@
+"""The mesh as a candidate: is the run's mesh too coarse?
+
+``mesh_refinement`` is the run's fitted model again on a mesh of half the edge length
+(:func:`breastmodel.pipeline.refinement.refine_run`: cached stages of the run, the very ones
+``[evaluate] refinement = true`` makes). Its column is the change of each scored skin node's
+signed error when the node moves as the fine mesh predicts: the node's displacement from the
+measured reference configuration is replaced by the fine mesh's, interpolated on the fine
+skin at the node's closest point there (reference configuration), and the node's signed
+distance to the measured skin is taken again. The shape of the skin itself, which the finer
+mesh follows more closely, is left out: that is the reference position's residual, the noise
+floor. The column's amount is fixed at 1 (the finer mesh, no parameter); the fitted
+parameters are re-fitted with it as with every candidate, so a coarse mesh that only biases
+the fitted modulus explains little and is named as a confounder of the modulus instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from breastmodel.diagnosis.candidates import Candidate
+
+__all__ = ["MESH_CANDIDATE", "add_mesh_candidate", "mesh_candidate", "probe_mesh", "refined_column",
+           "refined_columns"]
+
+MESH_CANDIDATE = "mesh_refinement"
+
+
+def mesh_candidate(probe: Mapping[str, Any], positions: Sequence[str]) -> Candidate:
+    """The ``mesh_refinement`` candidate of a probe (:func:`probe_mesh`) whose scored
+    positions are ``positions``."""
+    return Candidate(MESH_CANDIDATE, "numerical",
+                     f"the same model on a mesh of {probe['fine_size_mm']:g} mm edges "
+                     f"({probe['fine_n_tets']} tets) instead of {probe['size_mm']:g} mm "
+                     f"({probe['n_tets']}): a refinement probe, no parameter",
+                     amplitude=(1.0, 1.0), measurement="refinement", acts_on=tuple(positions))
+
+
+def probe_mesh(run, *, progress: bool = True) -> tuple[dict | None, str]:
+    """The run's refinement probe: ``(probe, "")`` with the folders of
+    :func:`~breastmodel.pipeline.refinement.refine_run`, or ``(None, reason)`` where the run
+    cannot be remeshed (a given problem folder) or a stage fails."""
+    from breastmodel.errors import StageError
+    from breastmodel.pipeline.refinement import refine_run
+
+    try:
+        return refine_run(run.out, progress=progress), ""
+    except StageError as exc:
+        return None, str(exc)
+
+
+def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """(n, 3) barycentric coordinates of points ``q`` on triangles (a, b, c)."""
+    v0, v1, v2 = b - a, c - a, q - a
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((v0, v0), (v0, v1), (v1, v1)))
+    d20, d21 = np.einsum("ij,ij->i", v2, v0), np.einsum("ij,ij->i", v2, v1)
+    den = np.where(np.abs(d00 * d11 - d01 ** 2) > 1e-300, d00 * d11 - d01 ** 2, 1.0)
+    v = (d11 * d20 - d01 * d21) / den
+    w = (d00 * d21 - d01 * d20) / den
+    return np.column_stack([1.0 - v - w, v, w])
+
+
+def _fine_skin_motion(probe: Mapping[str, Any], positions: Sequence[str]):
+    """The fine mesh's skin: its triangles, reference node positions and each position's
+    displacement from them (canonical, conforming node numbering)."""
+    from breastmodel.pipeline.problem import load_problem, skin_nodes
+
+    prob = load_problem(Path(probe["problem_dir"]))
+    mesh = prob.mesh
+    tri = np.asarray(mesh.face_sets["skin"])
+    conf = np.unique(tri)
+    u = {}
+    for p in positions:
+        with np.load(Path(probe["predict_dirs"][p]) / "predicted.npz") as z:
+            x = z["x"]
+        full = np.zeros((mesh.n_nodes, 3))
+        full[conf] = x[skin_nodes(prob, len(x))] - mesh.nodes[conf]
+        u[p] = full
+    return tri, mesh.nodes, u
+
+
+def refined_columns(problem, state: Mapping[str, Any], nodes: np.ndarray, keep: np.ndarray,
+                    positions: Sequence[str], probe: Mapping[str, Any]) -> dict:
+    """Per position, the change of the scored skin nodes' signed errors on the probe's finer
+    mesh, mm (``{position: (n,)}``, the order of the residual).
+
+    ``state`` is the fitted model's solution on the run's mesh (``X``, ``u`` {position}),
+    ``nodes`` / ``keep`` the skin nodes and the scored ones (as in
+    :func:`breastmodel.diagnosis.residual.measured_geometry`).
+    """
+    from breastmodel.evaluation import point_to_surface
+    from breastmodel.evaluation.distances import TriangleSurface
+
+    tri, ref_f, u_f = _fine_skin_motion(probe, positions)
+    R = np.asarray(problem.mesh.nodes)[nodes[keep]]  # the measured reference configuration
+    q, t = TriangleSurface(ref_f, tri).closest(R)
+    w = _barycentric(q, *(ref_f[tri[t, k]] for k in range(3)))
+    X = np.asarray(state["X"])
+    out = {}
+    for p in positions:
+        x = (X + np.asarray(state["u"][p]))[nodes[keep]]
+        fine_u = np.einsum("ik,ikj->ij", w, u_f[p][tri[t]])
+        moved = R + fine_u
+        v, tr = problem.skins[p]
+        d0 = point_to_surface(x, v, tr, signed=True)[0]
+        d1 = point_to_surface(moved, v, tr, signed=True)[0]
+        out[p] = np.asarray(d1) - np.asarray(d0)
+    return out
+
+
+def refined_column(geometry: Mapping[str, Mapping[str, np.ndarray]],
+                   order: Sequence[str]) -> tuple[list, list, list, list]:
+    """The candidate's column over the stacked residual (``geometry[p]["refined"]`` of
+    every position in ``order``), its amount fixed at 1."""
+    return ([np.concatenate([geometry[p]["refined"] for p in order])], [1.0], [1.0],
+            ["refinement"])
+
+
+def add_mesh_candidate(run, state: Mapping[str, Any], nodes: np.ndarray, keep: np.ndarray,
+                       positions: Sequence[str], geometry: dict, *, refine: bool,
+                       progress: bool) -> tuple[Candidate | None, dict]:
+    """Probe the run's mesh and put the candidate's column in ``geometry`` (``"refined"`` of
+    every position). Returns ``(candidate, probe)`` (the probe's sizes, tet counts, folder and
+    seconds, for the ranking entry), or ``(None, {"name", "reason"})``, what ``skipped``
+    lists, where it is not asked for or the run cannot be remeshed."""
+    import time
+
+    if not refine:
+        return None, {"name": MESH_CANDIDATE, "reason": "not asked for (--no-refinement)"}
+    t0 = time.perf_counter()
+    if progress:
+        print(f"diagnose: {MESH_CANDIDATE}: the fitted model on a mesh of half the edge "
+              "length (cached stages of the run)", flush=True)
+    probe, why = probe_mesh(run, progress=progress)
+    if probe is None:
+        return None, {"name": MESH_CANDIDATE, "reason": why}
+    cols = refined_columns(run.problem, state, nodes, keep, positions, probe)
+    for p in positions:
+        geometry[p]["refined"] = cols[p]
+    info = {k: probe[k] for k in ("size_mm", "fine_size_mm", "n_tets", "fine_n_tets")}
+    info.update(problem_dir=str(probe["problem_dir"]), seconds=time.perf_counter() - t0)
+    return mesh_candidate(probe, positions), info
