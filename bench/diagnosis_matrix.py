@@ -3,7 +3,8 @@
 Every case is a subject whose data carry one known cause of misfit that the fitted model
 lacks: a hidden physical effect, a misregistered position, an offset of the measured skin,
 the scan's field-of-view cut left free in the model (``cut_faces``, on the FEBio suite,
-whose truths go on past the cut), or nothing ("none": noise only). The diagnosis runs on the
+whose truths go on past the cut), a mesh twice as coarse as the "auto" size
+(``mesh_refinement``, FEBio suite), or nothing ("none": noise only). The diagnosis runs on the
 fitted model; its answer is the best significant candidate, or "none". The table gives, per
 case, the truth, the answer, the truth's rank, its explained fraction and delta BIC, the
 verified worst MHD against the run's, and the wall time of the diagnosis; then top-1 and
@@ -172,18 +173,21 @@ FEBIO_MEASUREMENT = {
 FEBIO_MODEL = {
     "cut_faces": {"cut_faces": None},  # the field-of-view cut left free
 }
+#: The mesh class: the control subject fitted on a mesh of this many times its "auto" edge
+#: length (a user's coarse ``[mesh] size_mm``); the diagnosis should name ``mesh_refinement``.
+FEBIO_MESH = {"mesh_refinement": 2.0}
 
 
 def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path | None
                 ) -> Iterator[Case]:
     """Family subjects with FEBio truth, one per name of :data:`FEBIO_CASES`,
-    :data:`FEBIO_MEASUREMENT` or :data:`FEBIO_MODEL` and seed."""
+    :data:`FEBIO_MEASUREMENT`, :data:`FEBIO_MODEL` or :data:`FEBIO_MESH` and seed."""
     from breastmodel.validation.suite import family_maker, suite_config
     from imaging.subject import read_subject
 
     for name in names:
         for seed in seeds:
-            control = name in FEBIO_MEASUREMENT or name in FEBIO_MODEL
+            control = name in FEBIO_MEASUREMENT or name in FEBIO_MODEL or name in FEBIO_MESH
             label, physics = (name, "bulk") if control else FEBIO_CASES[name]
             make = family_maker(size="small", cache=cache, physics=physics)
             tag = f"{name.replace(':', '_')}-{seed}"
@@ -199,6 +203,8 @@ def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path |
                                register={"require_fiducials": False})
             if label == "regions:gland":
                 cfg["mesh"]["keep_gland"] = True
+            if name in FEBIO_MESH:
+                cfg["mesh"]["size_mm"] = FEBIO_MESH[name] * _auto_size(truth, sub.reference)
             if name not in FEBIO_MEASUREMENT:
                 yield Case(label, None, cfg, subject=subject, tag=tag,
                            weak=name.endswith("_weak"))
@@ -208,6 +214,15 @@ def febio_suite(root: Path, names: list[str], *, seeds: list[int], cache: Path |
             label = f"misregistration:{moved[0]}" if prefix else name
             yield Case(label, None, cfg, subject=subject, tag=tag,
                        moves={p: move for p in moved}, base_tag=base_tag)
+
+
+def _auto_size(truth: Path, reference: str) -> float:
+    """The "auto" element size of the reference's truth label map, mm."""
+    import SimpleITK as sitk
+
+    from meshing.sizing import mesh_size
+
+    return mesh_size("auto", sitk.ReadImage(str(truth / f"{reference}_labels.nii.gz")))[0]
 
 
 #: Candidates that also name a class: a sliding interface is a shearing one or a contact.
@@ -335,7 +350,7 @@ def main(argv: list[str] | None = None) -> int:
                          "same case and seed are replaced")
     args = ap.parse_args(argv)
     known = (MOUND_CASES if args.suite == "mounds"
-             else {**FEBIO_CASES, **FEBIO_MEASUREMENT, **FEBIO_MODEL})
+             else {**FEBIO_CASES, **FEBIO_MEASUREMENT, **FEBIO_MODEL, **FEBIO_MESH})
     names = [n for n in (args.cases or ",".join(known)).split(",") if n]
     unknown = sorted(set(names) - set(known))
     if unknown:
