@@ -292,7 +292,21 @@ def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float = RIM_MM
         "diagnose_cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system),
         "verdict": d["verdict"],
         "confounders": [{"name": c["name"], "change": c["change"]} for c in d["confounders"]],
+        "mesh_probe": _mesh_probe(d),
     }
+
+
+def _mesh_probe(d: dict) -> dict | None:
+    """The mesh candidate of a diagnosis: its rank, explained fraction, the change of the
+    fitted parameter it moves most, and the probe (sizes, tets, seconds); None without it."""
+    names = [r["name"] for r in d["ranking"]]
+    r = next((r for r in d["ranking"] if r["measurement"] == "refinement"), None)
+    if r is None:
+        return None
+    return {"rank": names.index(r["name"]) + 1, "explained": r["explained"],
+            "significant": r["significant"], "parameter_change": r.get("parameter_change"),
+            **{k: r["probe"][k] for k in ("size_mm", "fine_size_mm", "n_tets", "fine_n_tets",
+                                          "seconds")}}
 
 
 def _flagged(run_dir: Path) -> list[str]:
