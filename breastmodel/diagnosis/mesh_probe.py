@@ -1,16 +1,19 @@
 """The mesh as a candidate: is the run's mesh too coarse?
 
-``mesh_refinement`` is the run's fitted model again on a mesh of half the edge length
+``mesh_refinement`` is the run's fitted model again on a mesh of half the edge length, or of
+about :data:`MAX_PROBE_TETS` tets where halving would make more
 (:func:`breastmodel.pipeline.refinement.refine_run`: cached stages of the run, the very ones
-``[evaluate] refinement = true`` makes). Its column is the change of each scored skin node's
-signed error when the node moves as the fine mesh predicts: the node's displacement from the
-measured reference configuration is replaced by the fine mesh's, interpolated on the fine
-skin at the node's closest point there (reference configuration), and the node's signed
-distance to the measured skin is taken again. The shape of the skin itself, which the finer
-mesh follows more closely, is left out: that is the reference position's residual, the noise
-floor. The column's amount is fixed at 1 (the finer mesh, no parameter); the fitted
-parameters are re-fitted with it as with every candidate, so a coarse mesh that only biases
-the fitted modulus explains little and is named as a confounder of the modulus instead.
+``[evaluate] refinement = true`` makes at half the edge). Its column is the change of each
+scored skin node's signed error when the node moves as the fine mesh predicts: the node's
+displacement from the measured reference configuration is replaced by the fine mesh's,
+interpolated on the fine skin at the node's closest point there (reference configuration),
+and the node's signed distance to the measured skin is taken again. The shape of the skin
+itself, which the finer mesh follows more closely, is left out: that is the reference
+position's residual, the noise floor. The column's amount is fixed at 1 (the finer mesh, no
+parameter); the fitted parameters are re-fitted with it as with every candidate. A coarse
+mesh is mostly too stiff, which the fitted modulus absorbs: the candidate is then also a
+convergence check (:mod:`breastmodel.diagnosis.scoring`: a finer mesh that moves a fitted
+parameter by 10 % or more makes it significant, whatever it explains).
 """
 
 from __future__ import annotations
@@ -23,10 +26,20 @@ import numpy as np
 
 from breastmodel.diagnosis.candidates import Candidate
 
-__all__ = ["MESH_CANDIDATE", "add_mesh_candidate", "mesh_candidate", "probe_mesh", "refined_column",
-           "refined_columns"]
+__all__ = ["MAX_PROBE_TETS", "MESH_CANDIDATE", "add_mesh_candidate", "mesh_candidate",
+           "probe_factor", "probe_mesh", "refined_column", "refined_columns"]
 
 MESH_CANDIDATE = "mesh_refinement"
+#: The probe halves the mesh's edge, unless that would make more than about this many tets
+#: (tets grow as the edge's inverse cube: halving 6 mm gave 7.0x on small-003's mesh, 10926
+#: -> 76803); then its edge is the one that makes about this many.
+MAX_PROBE_TETS = 120_000
+
+
+def probe_factor(n_tets: int) -> float:
+    """The probe's edge as a fraction of the run's: 1/2, or more for a mesh whose half-edge
+    copy would exceed :data:`MAX_PROBE_TETS`."""
+    return max(0.5, (n_tets / MAX_PROBE_TETS) ** (1.0 / 3.0))
 
 
 def mesh_candidate(probe: Mapping[str, Any], positions: Sequence[str]) -> Candidate:
@@ -40,14 +53,19 @@ def mesh_candidate(probe: Mapping[str, Any], positions: Sequence[str]) -> Candid
 
 
 def probe_mesh(run, *, progress: bool = True) -> tuple[dict | None, str]:
-    """The run's refinement probe: ``(probe, "")`` with the folders of
-    :func:`~breastmodel.pipeline.refinement.refine_run`, or ``(None, reason)`` where the run
-    cannot be remeshed (a given problem folder) or a stage fails."""
+    """The run's refinement probe (its edge :func:`probe_factor` times the run's):
+    ``(probe, "")`` with the folders of :func:`~breastmodel.pipeline.refinement.refine_run`,
+    or ``(None, reason)`` where the run cannot be remeshed (a given problem folder), its mesh
+    is too large to refine, or a stage fails."""
     from breastmodel.errors import StageError
     from breastmodel.pipeline.refinement import refine_run
 
+    factor = probe_factor(run.problem.mesh.n_tets)
+    if factor > 0.8:
+        return None, (f"the mesh has {run.problem.mesh.n_tets} tets: a probe of at most "
+                      f"{MAX_PROBE_TETS} tets would refine its edge by less than a fifth")
     try:
-        return refine_run(run.out, progress=progress), ""
+        return refine_run(run.out, factor=round(factor, 2), progress=progress), ""
     except StageError as exc:
         return None, str(exc)
 
@@ -132,8 +150,8 @@ def add_mesh_candidate(run, state: Mapping[str, Any], nodes: np.ndarray, keep: n
         return None, {"name": MESH_CANDIDATE, "reason": "not asked for (--no-refinement)"}
     t0 = time.perf_counter()
     if progress:
-        print(f"diagnose: {MESH_CANDIDATE}: the fitted model on a mesh of half the edge "
-              "length (cached stages of the run)", flush=True)
+        print(f"diagnose: {MESH_CANDIDATE}: the fitted model on a finer mesh (cached stages "
+              "of the run)", flush=True)
     probe, why = probe_mesh(run, progress=progress)
     if probe is None:
         return None, {"name": MESH_CANDIDATE, "reason": why}
