@@ -49,7 +49,7 @@ def add_parser(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--no-refinement", dest="refine", action="store_false",
                    help="do not probe the mesh (the candidate mesh_refinement: the fitted "
                         "model again on a mesh of half the edge length, about 8x the tets, "
-                        "at most about 120k; cached in the run, so a run made with "
+                        "at most about 150k; cached in the run, so a run made with "
                         "[evaluate] refinement = true has it already)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p

@@ -33,7 +33,7 @@ MESH_CANDIDATE = "mesh_refinement"
 #: The probe halves the mesh's edge, unless that would make more than about this many tets
 #: (tets grow as the edge's inverse cube: halving 6 mm gave 7.0x on small-003's mesh, 10926
 #: -> 76803); then its edge is the one that makes about this many.
-MAX_PROBE_TETS = 120_000
+MAX_PROBE_TETS = 150_000
 
 
 def probe_factor(n_tets: int) -> float:
