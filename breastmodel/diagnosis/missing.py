@@ -92,6 +92,7 @@ from breastmodel.diagnosis.scoring import (
     answer,
     confounders,
     confounding_sentence,
+    mesh_sentence,
     score_candidates,
     verdict_sentence,
 )
@@ -351,6 +352,9 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
             verdict = (f"{verdict}; {r['name']} looked significant by its linear estimate, "
                        f"but its re-fit left the worst MHD at {u['worst_mhd_after_mm']:.2f} mm "
                        f"({u['worst_mhd_before_mm']:.2f} mm before): not confirmed")
+    mesh = next((r for r in ranking if r["measurement"] == "refinement"), None)
+    if best is not None and mesh is not None and mesh["significant"] and mesh is not best:
+        verdict = f"{verdict}; {mesh_sentence(mesh)}"
     refit = {q: plan.theta0[q] * math.exp(zq) for q, zq in base.z_base.items()}
     confounding = confounders(ranking, refit)
     if confounding:

@@ -285,13 +285,7 @@ def verdict_sentence(best: Mapping[str, Any], rms_base: float) -> str:
                 f"{best['predicted_rms_mm']:.3f} mm): rerun `breastmodel register` for {pos} "
                 "(check its fiducials and the chest-wall correlation), then the run")
     if best["measurement"] == "refinement":
-        pr, ch = best["probe"], best.get("parameter_change") or {}
-        moves = (f"the fitted {ch['parameter']} would move by {100 * ch['change']:+.0f} % and "
-                 if ch else "")
-        return (f"the mesh looks too coarse: on a mesh of {pr['fine_size_mm']:g} mm edges "
-                f"({pr['fine_n_tets']} tets against {pr['n_tets']}) {moves}the residual RMS "
-                f"from {rms_base:.3f} to {best['predicted_rms_mm']:.3f} mm (linear estimates): "
-                f"rerun with `[mesh] size_mm = {pr['fine_size_mm']:g}`")
+        return mesh_sentence(best, rms_base)
     if best["measurement"] == "offset":
         s = best["estimate"]["measured.offset_mm"]
         return (f"the measured skin looks offset by {abs(s):.2f} mm "
@@ -306,3 +300,18 @@ def verdict_sentence(best: Mapping[str, Any], rms_base: float) -> str:
            "to test it there)")
         for p, v in (best.get("held_out") or {}).items())
     return f"missing effect: {best['name']} ({best['doc']}); {gain}{held}"
+
+
+def mesh_sentence(entry: Mapping[str, Any], rms_base: float | None = None) -> str:
+    """What the mesh candidate (significant) says: the mesh looks too coarse, how much the
+    finer mesh moves the fitted values (and the residual RMS, from ``rms_base``), and the
+    mesh size to rerun with."""
+    pr, ch = entry["probe"], entry.get("parameter_change") or {}
+    moves = [f"the fitted {ch['parameter']} would move by {100 * ch['change']:+.0f} %"] \
+        if ch else []
+    if rms_base is not None:
+        moves.append(f"the residual RMS from {rms_base:.3f} to "
+                     f"{entry['predicted_rms_mm']:.3f} mm")
+    return (f"the mesh looks too coarse: on a mesh of {pr['fine_size_mm']:g} mm edges "
+            f"({pr['fine_n_tets']} tets against {pr['n_tets']}) {' and '.join(moves)} "
+            f"(linear estimates): rerun with `[mesh] size_mm = {pr['fine_size_mm']:g}`")

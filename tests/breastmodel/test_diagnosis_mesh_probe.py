@@ -160,3 +160,8 @@ def test_the_probe_halves_the_edge_unless_that_makes_too_many_tets():
     assert probe_factor(11_000) == probe_factor(17_000) == 0.5
     f = probe_factor(45_600)  # the full-size validation subject
     assert 0.5 < f < 0.8 and 45_600 / f ** 3 == pytest.approx(MAX_PROBE_TETS)
+        from breastmodel.diagnosis.scoring import mesh_sentence
+
+        # after another answer (the demo's asymmetry on its 8 mm mesh): the mesh is named too
+        beside = mesh_sentence(e)
+        assert beside.startswith("the mesh looks too coarse") and "residual RMS" not in beside
