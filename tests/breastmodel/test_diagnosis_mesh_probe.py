@@ -145,12 +145,15 @@ def test_a_finer_mesh_that_moves_the_fitted_modulus_by_a_tenth_says_the_mesh_is_
     assert ch["change"] == pytest.approx(np.expm1(shift), abs=0.01)
     assert e["significant"] is (ch["change"] >= CONFOUNDING_CHANGE)
     if e["significant"]:
-        from breastmodel.diagnosis.scoring import verdict_sentence
+        from breastmodel.diagnosis.scoring import mesh_sentence, verdict_sentence
 
         e["probe"] = {"size_mm": 12.0, "fine_size_mm": 6.0, "n_tets": 900, "fine_n_tets": 7000}
         said = verdict_sentence(e, 0.3)
         assert said.startswith("the mesh looks too coarse: on a mesh of 6 mm edges")
         assert "the fitted E would move by +16 %" in said and "`[mesh] size_mm = 6`" in said
+        # after another answer (the demo's asymmetry on its 8 mm mesh): the mesh is named too
+        beside = mesh_sentence(e)
+        assert beside.startswith("the mesh looks too coarse") and "residual RMS" not in beside
 
 
 def test_the_probe_halves_the_edge_unless_that_makes_too_many_tets():
@@ -160,8 +163,3 @@ def test_the_probe_halves_the_edge_unless_that_makes_too_many_tets():
     assert probe_factor(11_000) == probe_factor(17_000) == 0.5
     f = probe_factor(45_600)  # the full-size validation subject
     assert 0.5 < f < 0.8 and 45_600 / f ** 3 == pytest.approx(MAX_PROBE_TETS)
-        from breastmodel.diagnosis.scoring import mesh_sentence
-
-        # after another answer (the demo's asymmetry on its 8 mm mesh): the mesh is named too
-        beside = mesh_sentence(e)
-        assert beside.startswith("the mesh looks too coarse") and "residual RMS" not in beside
