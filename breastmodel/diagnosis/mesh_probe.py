@@ -68,6 +68,8 @@ def probe_mesh(run, *, progress: bool = True) -> tuple[dict | None, str]:
         return refine_run(run.out, factor=round(factor, 2), progress=progress), ""
     except StageError as exc:
         return None, str(exc)
+    except Exception as exc:  # noqa: BLE001 - a failed probe is one candidate, not the diagnosis
+        return None, f"the probe failed: {type(exc).__name__}: {exc}"
 
 
 def _barycentric(q: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -163,3 +163,23 @@ def test_the_probe_halves_the_edge_unless_that_makes_too_many_tets():
     assert probe_factor(11_000) == probe_factor(17_000) == 0.5
     f = probe_factor(45_600)  # the full-size validation subject
     assert 0.5 < f < 0.8 and 45_600 / f ** 3 == pytest.approx(MAX_PROBE_TETS)
+
+
+def test_a_probe_that_fails_is_listed_with_its_reason_and_the_diagnosis_goes_on(monkeypatch):
+    """A fine mesh the solver refuses (a skin-layer truth's probe, 2026-12-07: 2 of 76696
+    tets of zero volume) costs the candidate, not the diagnosis."""
+    import breastmodel.pipeline.refinement as refinement
+
+    def refuse(*args, **kw):
+        raise ValueError("mechanics: inverted or degenerate mesh: 2 of 76696 tets")
+
+    monkeypatch.setattr(refinement, "refine_run", refuse)
+
+    class Run:
+        out = "RUN"
+        problem = type("P", (), {"mesh": type("M", (), {"n_tets": 11_000})()})()
+
+    probe, why = probe_mesh(Run(), progress=False)
+    assert probe is None
+    assert why == ("the probe failed: ValueError: mechanics: inverted or degenerate mesh: 2 of "
+                   "76696 tets")
