@@ -64,6 +64,9 @@ def _volume_skewness(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     edge_eq = 4.0 * circ_r / np.sqrt(6.0)
     vol_eq = edge_eq**3 / (6.0 * np.sqrt(2.0))
     skew = np.clip(1.0 - np.abs(vol) / np.maximum(vol_eq, 1e-300), 0.0, 1.0)
+    # two coincident nodes leave no circumsphere (0 / 0 above, skewness 0): such a tet is as
+    # flat as a tet gets (a fine mesh of 2026-12-07 kept two of them, zero volume, unseen)
+    skew = np.where(vol_eq > 0.0, skew, 1.0)
     return vol, skew, circ_r
 
 

@@ -67,3 +67,12 @@ def test_volume_and_skewness_alone_on_known_tets():
     squashed = REGULAR * np.array([1.0, 1.0, 1e-3])  # all four nodes near the plane z = 0
     vol, skew = volume_skewness(squashed, tets[:1])
     assert vol[0] == pytest.approx(8e-3 / 3) and skew[0] > 0.99
+
+
+def test_a_tet_with_two_coincident_nodes_is_as_flat_as_a_tet_gets():
+    """No circumsphere (0 / 0): its skewness was 0, "perfect", and the mesh improvement
+    kept two such tets of zero volume in a fine mesh the solver then refused."""
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    vol, skew = volume_skewness(x, np.array([[0, 1, 2, 3]]))
+    assert vol[0] == 0.0 and skew[0] == 1.0
+    assert q1(x)["skewness"] == 1.0
