@@ -90,8 +90,8 @@ def refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str,
 def refine_run(run_dir: str | Path, *, factor: float = 0.5, progress: bool = True) -> dict:
     """The mesh-refinement probe of a finished subject run: its fitted model on a mesh of
     ``factor`` times its edge length, the stages cached in the run's own cache (a run made
-    with ``[evaluate] refinement = true`` has them already) and logged under
-    ``run_dir/refinement``.
+    with ``[evaluate] refinement = true`` has them already); the probe's config and
+    provenance go to ``run_dir/refinement``.
 
     Returns
     -------
