@@ -194,8 +194,10 @@ def _convergence(entry: dict, base: Baseline, plan: Plan) -> None:
     column, against the re-fit without it) means the mesh is too coarse for the fitted
     values, whatever the skin shows. On FEBio truths fitted on meshes twice their "auto" edge
     (small-003 at 12 mm, small-000 at 8, small-008 at 9) the probe explained 19, 5 and 13 %
-    of the squared residual but moved the modulus by +12, +16 and +24 % (towards the truth:
-    small-003 1.00 -> 1.13 kPa, truth 1.15); on small-003's "auto" 6 mm mesh by +5 %."""
+    of the squared residual but moved the modulus by +12, +16.5 and +24 % (towards the truth:
+    small-003 1.00 -> 1.13 kPa, truth 1.15); on the 42 other rows of the diagnosis matrix, at
+    the "auto" mesh, by +2.9 to +11.7 % (the two above 10 %, small-000's, not confirmed by
+    the fine mesh's real evaluation: bench/diagnosis_matrix.py, 2026-12-07)."""
     refit = {q: plan.theta0[q] * math.exp(z) for q, z in base.z_base.items()}
     changes = {q: entry["estimate"][q] / v - 1.0 for q, v in refit.items()
                if q in entry["estimate"] and v > 0}
