@@ -121,6 +121,7 @@ def refine_run(run_dir: str | Path, *, factor: float = 0.5, progress: bool = Tru
     prep = prepare_subject(raw["subject"], cfg, run_dir / "refinement", progress=progress,
                            cache=cache_of(run_dir), command="refinement")
     h = float(metrics["mesh"]["mesh_size_mm"])
-    fine = refinement_stages(prep, cfg, model, list(metrics["positions"]), factor * h)
-    return {"size_mm": h, "fine_size_mm": factor * h, "n_tets": n_tets(prep.problem_dir),
+    fine_h = round(factor * h, 2)
+    fine = refinement_stages(prep, cfg, model, list(metrics["positions"]), fine_h)
+    return {"size_mm": h, "fine_size_mm": fine_h, "n_tets": n_tets(prep.problem_dir),
             "fine_n_tets": n_tets(fine["problem_dir"]), **fine}
