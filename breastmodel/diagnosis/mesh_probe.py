@@ -112,7 +112,6 @@ def refined_columns(problem, state: Mapping[str, Any], nodes: np.ndarray, keep: 
     ``nodes`` / ``keep`` the skin nodes and the scored ones (as in
     :func:`breastmodel.diagnosis.residual.measured_geometry`).
     """
-    from breastmodel.evaluation import point_to_surface
     from breastmodel.evaluation.distances import TriangleSurface
 
     tri, ref_f, u_f = _fine_skin_motion(probe, positions)
@@ -125,10 +124,8 @@ def refined_columns(problem, state: Mapping[str, Any], nodes: np.ndarray, keep: 
         x = (X + np.asarray(state["u"][p]))[nodes[keep]]
         fine_u = np.einsum("ik,ikj->ij", w, u_f[p][tri[t]])
         moved = R + fine_u
-        v, tr = problem.skins[p]
-        d0 = point_to_surface(x, v, tr, signed=True)[0]
-        d1 = point_to_surface(moved, v, tr, signed=True)[0]
-        out[p] = np.asarray(d1) - np.asarray(d0)
+        skin = TriangleSurface(*problem.skins[p])  # one BVH for both queries
+        out[p] = skin.distance(moved, signed=True)[0] - skin.distance(x, signed=True)[0]
     return out
 
 

@@ -18,6 +18,26 @@ from breastmodel.diagnosis.candidates import Candidate
 from breastmodel.diagnosis.evaluations import fit_bounds, model_hash
 
 
+def _settings(cfg: Mapping[str, Any], model: Mapping[str, Any], obj_pos, positions) -> dict:
+    """The least-squares settings of a check: the run's solver and stress-free tables, the
+    scored positions calibrated, the others evaluated."""
+    return {"model": model, "solver": cfg["solver"], "stress_free": cfg["stress_free"],
+            "calibrate": list(obj_pos), "evaluate": [p for p in positions if p not in obj_pos]}
+
+
+def _evaluate_once(problem_dir: Path, settings: Mapping[str, Any],
+                   params: Mapping[str, float]) -> dict:
+    """One evaluation of ``settings`` on ``problem_dir`` (nothing to re-fit), reported like a
+    re-fit's best (``params`` the values it used), or the error."""
+    from breastmodel.pipeline.problem import evaluate_params
+
+    rec = evaluate_params({}, problem_dir, settings)
+    if rec["error"]:
+        return {"error": rec["error"]}
+    return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"], "params": dict(params),
+            "evaluations": 1}
+
+
 def verify_effect(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos, positions,
                   work_dir: Path, budget: int, progress: bool) -> dict:
     """Switch ``c`` on and re-fit its parameters and the (not inert) fitted ones by least
@@ -34,19 +54,11 @@ def verify_effect(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos, 
     start = {**c.start, **entry["estimate"]}
     x0 = {p: min(max(float(start[p]), spec["min"]), spec["max"]) for p, spec in params.items()
           if p in start}
-    settings = {"model": set_params(c.apply(model), start), "solver": cfg["solver"],
-                "stress_free": cfg["stress_free"], "calibrate": list(obj_pos),
-                "evaluate": [p for p in positions if p not in obj_pos]}
+    settings = _settings(cfg, set_params(c.apply(model), start), obj_pos, positions)
     folder = work_dir / f"verify-{c.name.replace(':', '_')}-{model_hash(settings)}"
     try:
         if not params:  # nothing to re-fit: one evaluation
-            from breastmodel.pipeline.problem import evaluate_params
-
-            rec = evaluate_params({}, run.problem_dir, settings)
-            if rec["error"]:
-                return {"error": rec["error"]}
-            return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"],
-                    "params": {}, "evaluations": 1}
+            return _evaluate_once(run.problem_dir, settings, {})
         res = least_squares(run.problem_dir, settings, params, budget=budget,
                             work_dir=folder, progress=progress,
                             x0=x0 if len(x0) == len(params) else None)
@@ -82,7 +94,6 @@ def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_
     parameters there by least squares (at most ``budget`` evaluations)."""
     from breastmodel.diagnosis.measurement import _vertex_normals
     from breastmodel.pipeline.fit import least_squares
-    from breastmodel.pipeline.problem import evaluate_params
 
     cfg, model = run.config, run.model
     if c.measurement == "rigid":
@@ -94,17 +105,11 @@ def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_
         moves = {p: (lambda v, tri: v + s * _vertex_normals(v, tri)) for p in c.acts_on}
     folder = work_dir / f"verify-{c.name.replace(':', '_')}-{model_hash(dict(entry['estimate']))}"
     prob = corrected_problem(Path(run.problem_dir), folder / "problem", moves)
-    settings = {"model": model, "solver": cfg["solver"], "stress_free": cfg["stress_free"],
-                "calibrate": list(obj_pos), "evaluate": [p for p in positions
-                                                          if p not in obj_pos]}
+    settings = _settings(cfg, model, obj_pos, positions)
     params = {q: dict(zip(("min", "max"), fit_bounds(cfg, q))) for q in fitted}
     try:
         if not params:
-            rec = evaluate_params({}, prob, settings)
-            if rec["error"]:
-                return {"error": rec["error"]}
-            return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"], "params": {},
-                    "evaluations": 1}
+            return _evaluate_once(prob, settings, {})
         from breastmodel.pipeline.config import get_param
 
         x0 = {q: min(max(float(get_param(model, q)), p["min"]), p["max"])
@@ -124,15 +129,7 @@ def verify_refinement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_p
     fitted parameters of the linear estimate: one real evaluation (a re-fit on the fine mesh
     would cost ``budget`` evaluations of a mesh eight times the run's)."""
     from breastmodel.pipeline.config import set_params
-    from breastmodel.pipeline.problem import evaluate_params
 
-    cfg = run.config
     est = {q: float(entry["estimate"][q]) for q in fitted if q in entry["estimate"]}
-    settings = {"model": set_params(run.model, est), "solver": cfg["solver"],
-                "stress_free": cfg["stress_free"], "calibrate": list(obj_pos),
-                "evaluate": [p for p in positions if p not in obj_pos]}
-    rec = evaluate_params({}, Path(entry["probe"]["problem_dir"]), settings)
-    if rec["error"]:
-        return {"error": rec["error"]}
-    return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"], "params": est,
-            "evaluations": 1}
+    settings = _settings(run.config, set_params(run.model, est), obj_pos, positions)
+    return _evaluate_once(Path(entry["probe"]["problem_dir"]), settings, est)

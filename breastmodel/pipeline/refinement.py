@@ -75,8 +75,7 @@ def refinement_check(prep: Prepared, cfg: Mapping[str, Any], model: Mapping[str,
     """
     if prep.register_dir is None:
         return {"skipped": "a given problem folder has no label map to remesh"}
-    meta = json.loads((prep.problem_dir / "problem.json").read_text())
-    h = float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
+    h = _mesh_size(prep, cfg)
     fine = refinement_stages(prep, cfg, model, list(pred_dirs), h / 2)
     out = {"size_mm": h, "fine_size_mm": h / 2, "positions": {},
            "n_tets": n_tets(prep.problem_dir), "fine_n_tets": n_tets(fine["problem_dir"])}
@@ -117,11 +116,17 @@ def refine_run(run_dir: str | Path, *, factor: float = 0.5, progress: bool = Tru
                          "label map to remesh", run_dir / "stages.json")
     cfg = load_run_config(run_dir / "config.toml", drop=("subject",))
     model = json.loads((run_dir / "params.json").read_text())["model"]
-    metrics = json.loads((run_dir / "metrics.json").read_text())
+    positions = json.loads((run_dir / "metrics.json").read_text())["positions"]
     prep = prepare_subject(raw["subject"], cfg, run_dir / "refinement", progress=progress,
                            cache=cache_of(run_dir), command="refinement")
-    h = float(metrics["mesh"]["mesh_size_mm"])
+    h = _mesh_size(prep, cfg)
     fine_h = round(factor * h, 2)
-    fine = refinement_stages(prep, cfg, model, list(metrics["positions"]), fine_h)
+    fine = refinement_stages(prep, cfg, model, list(positions), fine_h)
     return {"size_mm": h, "fine_size_mm": fine_h, "n_tets": n_tets(prep.problem_dir),
             "fine_n_tets": n_tets(fine["problem_dir"]), **fine}
+
+
+def _mesh_size(prep: Prepared, cfg: Mapping[str, Any]) -> float:
+    """The element edge the run's mesh was made with, mm ("auto" resolved)."""
+    meta = json.loads((prep.problem_dir / "problem.json").read_text())
+    return float(meta.get("mesh_size_mm", cfg["mesh"]["size_mm"]))
