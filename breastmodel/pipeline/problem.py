@@ -305,6 +305,7 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
         ``objective`` (mean over the calibration positions and the seen measurements of the
         skin MHD and the mean landmark error, mm; NaN on failure), ``mhd_mm`` {position:
         mm}, ``landmarks_mm`` {position: mean landmark error, mm; when seen},
+        ``landmark_errors_mm`` {position: each landmark's error, mm; seen or not},
         ``forward_solves``, ``wall_s``, ``error`` (str or None).
     """
     t0 = time.perf_counter()
@@ -314,7 +315,7 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
     positions = calibrate + [p for p in settings.get("evaluate") or () if p not in calibrate]
     sees = list(settings.get("sees") or ["skin"])
     out: dict[str, Any] = {"objective": math.nan, "mhd_mm": {}, "landmarks_mm": {},
-                           "forward_solves": 0, "error": None,
+                           "landmark_errors_mm": {}, "forward_solves": 0, "error": None,
                            **({"residual": {}, "residual_offset": {}} if residuals else {})}
     if start is not None and len(start) != model_mesh(problem, model).n_nodes:
         start = None  # another mesh (an effect that splits the interface): no warm start
@@ -339,9 +340,15 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
                 out["mhd_mm"][pos] = math.nan  # a held-out failure does not void the point
                 continue
             out["mhd_mm"][pos] = score_position(problem, state.x, pos)["mhd_mm"]
-            lm = predicted_landmarks(problem, state.x, pos) if "landmarks" in sees else None
+            # the landmarks' errors are reported whether the objective sees them or not (the
+            # diagnosis' independent witness, :mod:`breastmodel.diagnosis.landmarks`)
+            lm = predicted_landmarks(problem, state.x, pos) if problem.landmarks else None
             if lm is not None:
-                out["landmarks_mm"][pos] = float(np.linalg.norm(lm[1] - lm[2], axis=1).mean())
+                err = np.linalg.norm(lm[1] - lm[2], axis=1)
+                out["landmark_errors_mm"][pos] = err.tolist()
+                lm = lm if "landmarks" in sees else None
+            if lm is not None:
+                out["landmarks_mm"][pos] = float(err.mean())
             if residuals and pos in calibrate:
                 _store_residual(out, problem, state.x, pos, sees, lm)
         out["objective"] = float(np.mean(
