@@ -112,6 +112,7 @@ def write_diagnosis_html(path: Path, diag: Mapping[str, Any],
     miss = diag["missing"]
     parts = _where_section(diag, maps)
     parts += _missing_section(miss)
+    parts += _landmark_section(miss)
     parts += _failed_section(miss)
     parts += _correction_maps(miss, maps)
     parts += ["<h3>Not scored</h3>",
@@ -205,6 +206,29 @@ def _missing_section(miss: Mapping[str, Any]) -> list:
                          "evidence (region RMS before->after)",
                          "MHD after a real re-fit with it (mm)"], rows, raw_header=True))
     return parts
+
+
+def _landmark_section(miss: Mapping[str, Any]) -> list:
+    """The landmark check (:mod:`breastmodel.diagnosis.landmarks`; not run: nothing)."""
+    lc = miss.get("landmark_check")
+    if not lc:
+        return []
+    named = lc.get("named")
+    return ["<h3>The internal landmarks as a witness</h3>",
+            f"<p>No candidate explained more than the noise on the skin, so the best physical "
+            f"ones were re-fitted on the skin and the internal landmarks of "
+            f"{', '.join(map(html.escape, lc['positions']))}, which no fit saw, were compared "
+            f"with their measured places: RMS error {lc['rms_before_mm']:.2f} mm with the "
+            f"fitted model. A candidate is named when it lowers that by "
+            f"{100 * lc['drop']:.0f} % and {lc['min_drop_mm']:g} mm at least without raising "
+            f"the worst skin MHD: "
+            + (f"<b>{html.escape(named)}</b>." if named else "none did.") + "</p>",
+            _table(["candidate", "landmark RMS after its re-fit (mm)", "worst MHD before",
+                    "worst MHD after", "error"],
+                   [[x["name"], x["rms_after_mm"] if x["rms_after_mm"] is not None
+                     else float("nan"), x["worst_mhd_before_mm"] or float("nan"),
+                     x["worst_mhd_after_mm"] or float("nan"), x["error"] or ""]
+                    for x in lc["refits"]])]
 
 
 def _failed_section(miss: Mapping[str, Any]) -> list:

@@ -77,6 +77,7 @@ from breastmodel.diagnosis.evaluations import (
     model_hash,
     variant_point,
 )
+from breastmodel.diagnosis.landmarks import check_landmarks
 from breastmodel.diagnosis.measurement import measurement_candidates
 from breastmodel.diagnosis.mesh_probe import add_mesh_candidate
 from breastmodel.diagnosis.residual import (
@@ -180,11 +181,16 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
     ranking, failed, corrections = score_candidates(candidates, lin, base, plan, geometry)
     for r in ranking:
         r.update({"probe": probe} if r["measurement"] == "refinement" else {})
+    base_mhd = ev.records["base"]["result"]["mhd_mm"]
     _verify_best(ranking, candidates, run, fitted, obj_pos, positions, work_dir,
-                 base_mhd=ev.records["base"]["result"]["mhd_mm"], verify_top=verify_top,
-                 verify_budget=verify_budget, progress=progress)
+                 base_mhd=base_mhd, verify_top=verify_top, verify_budget=verify_budget,
+                 progress=progress)
+    lm = check_landmarks(ranking, candidates, run, fitted, obj_pos, positions, work_dir,
+                         state=ev.base_state, base_mhd=base_mhd, budget=verify_budget,
+                         progress=progress) if verify_top > 0 else None
     return _result(run, ev, lin, base, plan, ranking, corrections, skipped=skipped,
-                   failed=failed, fitted=fitted, obj_pos=obj_pos, rim_mm=rim_mm)
+                   failed=failed, fitted=fitted, obj_pos=obj_pos, rim_mm=rim_mm,
+                   landmark_check=lm)
 
 
 def _non_physical(run, state, nodes, keep, obj_pos, geometry, skipped: list, *, refine: bool,
@@ -333,7 +339,7 @@ def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, ob
 
 def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Plan,
             ranking: list, corrections: dict, *, skipped, failed, fitted, obj_pos,
-            rim_mm: float) -> dict:
+            rim_mm: float, landmark_check: dict | None) -> dict:
     """The diagnosis' JSON-ready result (see :func:`rank_candidates`)."""
     base_mhd = ev.records["base"]["result"]["mhd_mm"]
     best = answer(ranking)
@@ -382,6 +388,8 @@ def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Pla
         "evaluations": ev.cost,
         "n_effective": base.n_eff, "calibrate": base.calibrate, "held_out": base.held_out,
         "correction_maps": maps,
-        "n_evaluations": len(ev.points) + 1 + sum(r.get("verified", {}).get("evaluations", 0)
-                                              for r in ranking), "verdict": verdict,
+        "landmark_check": landmark_check,
+        "n_evaluations": len(ev.points) + 1 + sum(
+            r.get(k, {}).get("evaluations", 0) for r in ranking
+            for k in ("verified", "landmark_refit")), "verdict": verdict,
     }

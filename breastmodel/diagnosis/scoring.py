@@ -301,7 +301,21 @@ def verdict_sentence(best: Mapping[str, Any], rms_base: float) -> str:
            f" (it moves that position by {v['change_rms_mm']:.3f} mm RMS only, too little "
            "to test it there)")
         for p, v in (best.get("held_out") or {}).items())
-    return f"missing effect: {best['name']} ({best['doc']}); {gain}{held}"
+    return f"missing effect: {best['name']} ({best['doc']}); {gain}{held}{_witness(best)}"
+
+
+def _witness(best: Mapping[str, Any]) -> str:
+    """The landmark check's clause (:mod:`breastmodel.diagnosis.landmarks`), if it named
+    ``best``."""
+    lm = best.get("landmarks")
+    if not lm:
+        return ""
+    others = [x for x in lm["others"] if x["rms_after_mm"] is not None]
+    nxt = min(others, key=lambda x: x["rms_after_mm"], default=None)
+    return (f"; the skin alone hardly shows it (the fitted parameters absorb most of it), "
+            f"but re-fitted on the skin it brings the internal landmarks, which no fit saw, "
+            f"from {lm['rms_before_mm']:.2f} to {lm['rms_after_mm']:.2f} mm RMS"
+            + (f" (the next best, {nxt['name']}: {nxt['rms_after_mm']:.2f} mm)" if nxt else ""))
 
 
 def mesh_sentence(entry: Mapping[str, Any], rms_base: float | None = None) -> str:

@@ -3,7 +3,8 @@
 A physical candidate is switched on and re-fitted with the fitted parameters from its linear
 estimate (:func:`verify_effect`); an error of the measurement is corrected in a copy of the
 problem folder, where the fitted parameters are re-fitted (:func:`verify_measurement`).
-Both return the best evaluation's MHD per position and parameters, or the error.
+Both return the best evaluation's MHD per position, landmark errors and parameters, or the
+error.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ def _evaluate_once(problem_dir: Path, settings: Mapping[str, Any],
     if rec["error"]:
         return {"error": rec["error"]}
     return {"mhd_mm": rec["mhd_mm"], "objective_mm": rec["objective"], "params": dict(params),
-            "evaluations": 1}
+            "landmark_errors_mm": rec["landmark_errors_mm"], "evaluations": 1}
 
 
 def verify_effect(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos, positions,
@@ -66,12 +67,16 @@ def verify_effect(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos, 
         return {"error": str(exc)}
     best = res["best"]
     return {"mhd_mm": best["mhd_mm"], "objective_mm": best["objective"],
-            "params": best["params"], "evaluations": res["n_simulations"]}
+            "params": best["params"], "landmark_errors_mm": best["landmark_errors_mm"],
+            "evaluations": res["n_simulations"]}
 
 
-def corrected_problem(problem_dir: Path, out: Path, moves: Mapping[str, Any]) -> Path:
+def corrected_problem(problem_dir: Path, out: Path, moves: Mapping[str, Any], *,
+                      rigid: bool = False) -> Path:
     """A copy of the problem folder whose measured skins are moved by ``moves`` (position ->
-    callable (vertices, triangles) -> vertices)."""
+    callable (vertices, triangles) -> vertices); ``rigid``: the position's measured
+    landmarks move with it (one image, one registration)."""
+    import json
     import shutil
 
     from breastmodel.pipeline.problem import forget_problem
@@ -79,10 +84,16 @@ def corrected_problem(problem_dir: Path, out: Path, moves: Mapping[str, Any]) ->
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(problem_dir, out)
+    meta = json.loads((out / "problem.json").read_text())
     for p, move in moves.items():
         with np.load(out / f"{p}_skin.npz") as z:
             v, t = z["vertices"].copy(), z["triangles"].copy()
         np.savez(out / f"{p}_skin.npz", vertices=move(v, t), triangles=t)
+        lm = (meta.get("landmarks") or {}).get(p) if rigid else None
+        if lm:
+            moved = move(np.array(list(lm.values()), float), None)
+            meta["landmarks"][p] = {k: x.tolist() for k, x in zip(lm, moved)}
+    (out / "problem.json").write_text(json.dumps(meta, indent=1))
     forget_problem(out)
     return out
 
@@ -104,7 +115,8 @@ def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_
         s = float(entry["estimate"]["measured.offset_mm"])
         moves = {p: (lambda v, tri: v + s * _vertex_normals(v, tri)) for p in c.acts_on}
     folder = work_dir / f"verify-{c.name.replace(':', '_')}-{model_hash(dict(entry['estimate']))}"
-    prob = corrected_problem(Path(run.problem_dir), folder / "problem", moves)
+    prob = corrected_problem(Path(run.problem_dir), folder / "problem", moves,
+                             rigid=c.measurement == "rigid")
     settings = _settings(cfg, model, obj_pos, positions)
     params = {q: dict(zip(("min", "max"), fit_bounds(cfg, q))) for q in fitted}
     try:
@@ -120,7 +132,8 @@ def verify_measurement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_
         return {"error": str(exc)}
     best = res["best"]
     return {"mhd_mm": best["mhd_mm"], "objective_mm": best["objective"],
-            "params": best["params"], "evaluations": res["n_simulations"]}
+            "params": best["params"], "landmark_errors_mm": best["landmark_errors_mm"],
+            "evaluations": res["n_simulations"]}
 
 
 def verify_refinement(c: Candidate, entry: Mapping[str, Any], run, fitted, obj_pos,
