@@ -269,7 +269,8 @@ def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float = RIM_MM
     # stress-free inverse reproduces whatever the model, counted before)
     scored = d["objective_positions"]
     worst = max(v for p, v in d["baseline"]["mhd_mm"].items() if p in scored)
-    ver = (best.get("verified") or {}) if best else {}
+    # the answer's real re-fit: its check, or the landmark check's (which named it)
+    ver = (best.get("verified") or best.get("landmark_refit") or {}) if best else {}
     # held-out check: the truth against the best wrong candidate of the same parameter count
     wrong = next((r for r in d["ranking"] if truth and not matches(r["name"], case.label)
                   and r["n_parameters"] == truth["n_parameters"] and r.get("held_out")), None)
@@ -293,7 +294,17 @@ def diagnose_case(case: Case, out: Path, *, workers: int, rim_mm: float = RIM_MM
         "verdict": d["verdict"],
         "confounders": [{"name": c["name"], "change": c["change"]} for c in d["confounders"]],
         "mesh_probe": _mesh_probe(d),
+        "landmark_check": _landmarks(d.get("landmark_check")),
     }
+
+
+def _landmarks(lc: dict | None) -> dict | None:
+    """The landmark check of a diagnosis (what it named, the landmarks' RMS before and after
+    each re-fit, mm); None where it did not run."""
+    if lc is None:
+        return None
+    return {"named": lc.get("named"), "rms_before_mm": lc["rms_before_mm"],
+            "after_mm": {x["name"]: x["rms_after_mm"] for x in lc["refits"]}}
 
 
 def _mesh_probe(d: dict) -> dict | None:
