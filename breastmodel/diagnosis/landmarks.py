@@ -43,6 +43,9 @@ LANDMARK_DROP = 0.20
 LANDMARK_MIN_MM = 0.1
 #: How many physical candidates are re-fitted for the landmarks (each a short re-fit).
 LANDMARK_TOP = 3
+#: Why a re-fit has no landmark errors although it ran.
+STALE = ("its re-fit was stored by an earlier version, before landmark errors were "
+         "recorded: delete its verify-* folder in the diagnosis' evaluations to redo it")
 
 
 def landmark_rms(errors: Mapping[str, Sequence[float]], positions: Sequence[str]
@@ -101,7 +104,9 @@ def check_landmarks(ranking: list, candidates, run, fitted, obj_pos, positions,
         after = landmark_rms(v.get("landmark_errors_mm") or {}, obj_pos)
         mhd = v.get("mhd_mm") or {}
         common = [p for p in mhd if p in base_mhd and p in obj_pos]
-        rows.append({"name": r["name"], "rms_after_mm": after, "error": v.get("error"),
+        stale = not v.get("error") and v.get("landmark_errors_mm") is None
+        rows.append({"name": r["name"], "rms_after_mm": after,
+                     "error": v.get("error") or (STALE if stale else None),
                      "per_position_mm": {p: landmark_rms(v.get("landmark_errors_mm") or {}, [p])
                                          for p in per_position},
                      "worst_mhd_before_mm": max((base_mhd[p] for p in common), default=None),

@@ -290,7 +290,8 @@ def _summary(history: list[dict], method: str) -> dict:
     return {"method": method,
             "best": {"params": best["params"], "objective": best["objective"],
                      "mhd_mm": best["mhd_mm"],
-                     "landmark_errors_mm": best.get("landmark_errors_mm") or {}},
+                     # None: a record stored before landmark errors were reported
+                     "landmark_errors_mm": best.get("landmark_errors_mm")},
             "n_simulations": len(history),
             "n_failed": len(history) - len(ok),
             "forward_solves": int(sum(h.get("forward_solves", 0) for h in history)),

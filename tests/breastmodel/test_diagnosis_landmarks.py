@@ -128,3 +128,20 @@ def test_a_corrected_misregistration_moves_the_positions_landmarks_too(tmp_path)
         assert np.allclose(z["vertices"][:, 2], 4.0)
     out = vmod.corrected_problem(src, tmp_path / "offset", shift)
     assert json.loads((out / "problem.json").read_text())["landmarks"] == lm
+
+
+def test_a_refit_stored_before_landmark_errors_were_recorded_says_so(monkeypatch):
+    """A resumed diagnosis whose re-fit was stored by an earlier version has no landmark
+    errors for it: the check names that re-fit's reason instead of silently passing it by."""
+    def refit(c, entry, run, fitted, obj_pos, positions, work_dir, budget, progress):
+        return {"mhd_mm": {"prone": 0.8}, "landmark_errors_mm": None, "evaluations": 3}
+
+    monkeypatch.setattr(vmod, "verify_effect", refit)
+    monkeypatch.setattr(lmod, "base_errors", lambda problem, state, positions: BASE_ERRORS)
+    ranking = [_entry("skin", -4.0)]
+    out = check_landmarks(ranking, [Candidate("skin", "effect", "skin")],
+                          SimpleNamespace(problem=None), [], POS, POS, None, state={},
+                          base_mhd=BASE_MHD, budget=4, progress=False)
+    (row,) = out["refits"]
+    assert row["rms_after_mm"] is None and row["error"] == lmod.STALE
+    assert "named" not in out
