@@ -12,7 +12,10 @@ the measurement are candidates too: a rigid misregistration of each position and
 of the measured skin; and so is the mesh (mesh_refinement: the fitted model again on a mesh
 of half the edge length, cached in the run; --no-refinement skips it). Every candidate's
 score charges its parameters (an information criterion) and is checked on the position the
-run held out; every model evaluation has a budget of forward solves and seconds.
+run held out; every model evaluation has a budget of forward solves and seconds. Where no
+candidate is significant on the skin, the internal landmarks (landmarks.csv) are a witness:
+the candidates the skin favours are re-fitted, and one that brings the landmarks, which no
+fit saw, clearly closer in every position is named.
 Model evaluations are stored in ``DIR/diagnosis/evaluations`` (a rerun resumes).
 """
 
