@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,7 +77,6 @@ from breastmodel.diagnosis.evaluations import (
     model_hash,
     variant_point,
 )
-from breastmodel.diagnosis.landmarks import check_landmarks
 from breastmodel.diagnosis.measurement import measurement_candidates
 from breastmodel.diagnosis.mesh_probe import add_mesh_candidate
 from breastmodel.diagnosis.residual import (
@@ -97,7 +96,7 @@ from breastmodel.diagnosis.scoring import (
     score_candidates,
     verdict_sentence,
 )
-from breastmodel.diagnosis.verify import verify_effect, verify_measurement, verify_refinement
+from breastmodel.diagnosis.verify import verify_best
 
 __all__ = ["evaluate_model", "rank_candidates", "SIGNIFICANT_FLOOR_FRACTION"]
 
@@ -122,8 +121,8 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
         a rerun reuses them
     n_workers, scheduler : the dask cluster (see :func:`breastmodel.sweep.run_sweep`; the
         default 0 evaluates in this process)
-    verify_top : how many of the best significant candidates get a nonlinear check: a
-        least-squares re-fit with the candidate on (at most ``verify_budget`` evaluations)
+    verify_top : how many of the best significant candidates get a least-squares re-fit
+        with it on (at most ``verify_budget`` evaluations); 0 skips the landmark check too
     candidates : override the enumeration (tests, or a user's own list)
     rim_mm : skin nodes closer than this to the skin's open edge (the field-of-view cut) are
         left out of the residual, mm (0 keeps every node)
@@ -181,13 +180,9 @@ def rank_candidates(run, *, work_dir: str | Path | None = None, n_workers: int =
     ranking, failed, corrections = score_candidates(candidates, lin, base, plan, geometry)
     for r in ranking:
         r.update({"probe": probe} if r["measurement"] == "refinement" else {})
-    base_mhd = ev.records["base"]["result"]["mhd_mm"]
-    _verify_best(ranking, candidates, run, fitted, obj_pos, positions, work_dir,
-                 base_mhd=base_mhd, verify_top=verify_top, verify_budget=verify_budget,
-                 progress=progress)
-    lm = check_landmarks(ranking, candidates, run, fitted, obj_pos, positions, work_dir,
-                         state=ev.base_state, base_mhd=base_mhd, budget=verify_budget,
-                         progress=progress) if verify_top > 0 else None
+    lm = verify_best(ranking, candidates, run, fitted, obj_pos, positions, work_dir,
+                     state=ev.base_state, base_mhd=ev.records["base"]["result"]["mhd_mm"],
+                     verify_top=verify_top, verify_budget=verify_budget, progress=progress)
     return _result(run, ev, lin, base, plan, ranking, corrections, skipped=skipped,
                    failed=failed, fitted=fitted, obj_pos=obj_pos, rim_mm=rim_mm,
                    landmark_check=lm)
@@ -292,49 +287,6 @@ def _evaluate_variants(run, plan: Plan, positions: Sequence[str], work_dir: Path
                 "seconds": (r["result"] or {}).get("eval_s", r.get("wall_s"))}
             for k, r in res.items()}
     return _Evaluations(res, base_rec, base_state, points, limits, cost)
-
-
-def _verify_best(ranking: list, candidates: Sequence[Candidate], run, fitted, obj_pos,
-                 positions, work_dir: Path, *, base_mhd: Mapping[str, float], verify_top: int,
-                 verify_budget: int, progress: bool) -> None:
-    """Nonlinear check of the best ``verify_top`` significant candidates: a short
-    least-squares re-fit (candidate on, its parameters and the fitted ones free) from the
-    linear estimate, stored in each one's ``verified`` entry.
-
-    A candidate whose re-fit does not lower the worst MHD over the scored positions
-    (``obj_pos``) below the fitted model's (``base_mhd``) is not confirmed: it loses its
-    significance (its ``unconfirmed`` entry says why) and the next significant candidate is
-    checked, at most ``2 * verify_top`` re-fits in all; a re-fit that fails leaves the
-    candidate as it was.
-    On the FEBio diagnosis matrix the two answers whose re-fits raised the worst MHD were
-    wrong (a weak gland answered by a compliant interface: 1.10 -> 1.12 mm; a sliding layer
-    answered by Gent stiffening: 1.33 -> 1.36), while every right answer lowered it (by
-    2-68 %)."""
-    by_name = {c.name: c for c in candidates}
-    confirmed = tried = 0
-    for r in ranking:
-        if confirmed >= verify_top or tried >= 2 * verify_top:
-            break
-        if not r["significant"]:
-            continue
-        tried += 1
-        verify = {"": verify_effect, "refinement": verify_refinement}.get(r["measurement"],
-                                                                         verify_measurement)
-        r["verified"] = verify(by_name[r["name"]], r, run, fitted, obj_pos, positions,
-                               work_dir, verify_budget, progress)
-        after = r["verified"].get("mhd_mm") or {}
-        # over the scored positions: the reference, which the stress-free inverse reproduces
-        # whatever the model, is not one, and a measurement candidate does not correct it
-        # (a skin offset 1 mm outwards on a FEBio truth, small-008: the reference's 1.79 mm
-        # was the worst before and after a correction that took prone to 0.99 mm)
-        common = [p for p in after if p in base_mhd and p in obj_pos]
-        if common:
-            worst = {"worst_mhd_before_mm": max(base_mhd[p] for p in common),
-                     "worst_mhd_after_mm": max(after[p] for p in common)}
-            if worst["worst_mhd_after_mm"] >= worst["worst_mhd_before_mm"]:
-                r["significant"], r["unconfirmed"] = False, worst
-                continue
-        confirmed += 1
 
 
 def _result(run, ev: _Evaluations, lin: Linearisation, base: Baseline, plan: Plan,

@@ -29,6 +29,7 @@ from breastmodel.pipeline.scoring import (
     fit_residual,
     landmark_barycentric,
     predicted_landmarks,
+    record_landmarks,
     score_position,
     skin_node_regions,
     skin_residual,
@@ -39,8 +40,8 @@ log = logging.getLogger("breastmodel.pipeline")
 __all__ = [
     "RIM_FADE_MM", "Problem", "evaluate_params", "forget_problem", "landmark_barycentric",
     "load_problem", "mesh_of", "model_mesh", "move_measured_skin", "on_mesh", "position_model",
-    "skin_nodes", "predict_position", "score_position", "skin_node_regions", "skin_residual",
-    "solver_options", "stress_free_geometry",
+    "skin_nodes", "predict_position", "predicted_landmarks", "score_position",
+    "skin_node_regions", "skin_residual", "solver_options", "stress_free_geometry",
 ]
 
 
@@ -340,15 +341,7 @@ def evaluate_params(params: Mapping[str, float], problem_dir: str | Path,
                 out["mhd_mm"][pos] = math.nan  # a held-out failure does not void the point
                 continue
             out["mhd_mm"][pos] = score_position(problem, state.x, pos)["mhd_mm"]
-            # the landmarks' errors are reported whether the objective sees them or not (the
-            # diagnosis' independent witness, :mod:`breastmodel.diagnosis.landmarks`)
-            lm = predicted_landmarks(problem, state.x, pos) if problem.landmarks else None
-            if lm is not None:
-                err = np.linalg.norm(lm[1] - lm[2], axis=1)
-                out["landmark_errors_mm"][pos] = err.tolist()
-                lm = lm if "landmarks" in sees else None
-            if lm is not None:
-                out["landmarks_mm"][pos] = float(err.mean())
+            lm = record_landmarks(out, problem, state.x, pos, sees)
             if residuals and pos in calibrate:
                 _store_residual(out, problem, state.x, pos, sees, lm)
         out["objective"] = float(np.mean(

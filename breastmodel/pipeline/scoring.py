@@ -113,6 +113,24 @@ def predicted_landmarks(problem: Problem, x: np.ndarray, position: str):
     return common, pred, np.array([lm_pos[k] for k in common])
 
 
+def record_landmarks(out: dict, problem: Problem, x: np.ndarray, position: str,
+                     sees) -> tuple | None:
+    """Put each landmark's error at ``position`` (x: (N, 3) deformed nodes) in
+    ``out["landmark_errors_mm"]`` whether the objective sees the landmarks or not (the
+    diagnosis' independent witness, :mod:`breastmodel.diagnosis.landmarks`), and their mean
+    in ``out["landmarks_mm"]`` when ``sees`` does; returns :func:`predicted_landmarks`'
+    triple for the fit's residual when seen, else None."""
+    lm = predicted_landmarks(problem, x, position) if problem.landmarks else None
+    if lm is None:
+        return None
+    err = np.linalg.norm(lm[1] - lm[2], axis=1)
+    out["landmark_errors_mm"][position] = err.tolist()
+    if "landmarks" not in sees:
+        return None
+    out["landmarks_mm"][position] = float(err.mean())
+    return lm
+
+
 #: A skin node whose closest point on the measured skin lies on its rim (the field-of-view
 #: cut, the edge left where the skin meets the muscle) has no defined side: the sign of its
 #: distance follows whichever rim triangle is nearest and flips with sub-millimetre motions.
