@@ -214,14 +214,21 @@ def _landmark_section(miss: Mapping[str, Any]) -> list:
     if not lc:
         return []
     named = lc.get("named")
+    if not lc["refits"]:
+        return ["<h3>The internal landmarks as a witness</h3>",
+                f"<p>No candidate explained more than the noise on the skin, and the skin "
+                f"favoured no physical one (&Delta;BIC &lt; 0), so none was re-fitted for the "
+                f"internal landmarks (RMS error {lc['rms_before_mm']:.2f} mm with the fitted "
+                f"model).</p>"]
     return ["<h3>The internal landmarks as a witness</h3>",
             f"<p>No candidate explained more than the noise on the skin, so the best physical "
-            f"ones were re-fitted on the skin and the internal landmarks of "
+            f"ones the skin favours (and the best misregistration) were re-fitted on the skin "
+            f"and the internal landmarks of "
             f"{', '.join(map(html.escape, lc['positions']))}, which no fit saw, were compared "
             f"with their measured places: RMS error {lc['rms_before_mm']:.2f} mm with the "
             f"fitted model. A candidate is named when it lowers that by "
-            f"{100 * lc['drop']:.0f} % and {lc['min_drop_mm']:g} mm at least without raising "
-            f"the worst skin MHD: "
+            f"{100 * lc['drop']:.0f} % and {lc['min_drop_mm']:g} mm at least, more than any "
+            f"other, without taking any position's farther or raising the worst skin MHD: "
             + (f"<b>{html.escape(named)}</b>." if named else "none did.") + "</p>",
             _table(["candidate", "landmark RMS after its re-fit (mm)", "worst MHD before",
                     "worst MHD after", "error"],

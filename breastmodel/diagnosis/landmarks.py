@@ -37,7 +37,8 @@ __all__ = ["LANDMARK_DROP", "LANDMARK_MIN_MM", "LANDMARK_TOP", "check_landmarks"
 
 #: Relative drop of the landmarks' RMS error that names a candidate. Chosen on the FEBio
 #: matrix's seeds 3 and 8 (the right candidate 25-47 % where it helped, every candidate on
-#: the controls 8 % or less) and tested on seed 0 and the weak rows (README).
+#: the controls 8 % or less) and kept when seed 0 was run (README, "The landmarks as a
+#: witness", which says what was amended after it).
 LANDMARK_DROP = 0.20
 #: ... and the least absolute drop, mm (a fraction of a tiny error is not evidence).
 LANDMARK_MIN_MM = 0.1
@@ -117,7 +118,7 @@ def check_landmarks(ranking: list, candidates, run, fitted, obj_pos, positions,
     ok = [x for x in rows if x["rms_after_mm"] is not None
           and x["worst_mhd_after_mm"] is not None
           and x["worst_mhd_after_mm"] < x["worst_mhd_before_mm"]
-          and all((x["per_position_mm"].get(p) or math.inf) <= v
+          and all(x["per_position_mm"].get(p) is not None and x["per_position_mm"][p] <= v
                   for p, v in per_position.items())]
     if not ok:
         return out

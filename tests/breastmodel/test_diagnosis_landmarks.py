@@ -145,3 +145,15 @@ def test_a_refit_stored_before_landmark_errors_were_recorded_says_so(monkeypatch
     (row,) = out["refits"]
     assert row["rms_after_mm"] is None and row["error"] == lmod.STALE
     assert "named" not in out
+
+
+def test_the_report_shows_the_landmark_check(monkeypatch):
+    from breastmodel.diagnosis.diagnose import _landmark_section
+
+    ranking = [_entry("skin", -4.0)]
+    out, _ = _check(monkeypatch, ranking, {"skin": 0.6})
+    html = "".join(_landmark_section({"landmark_check": out}))
+    assert "<b>skin</b>" in html and "1.00 mm" in html and "0.6" in html
+    out, _ = _check(monkeypatch, [_entry("skin", 2.0)], {"skin": 0.1})
+    assert "none was re-fitted" in "".join(_landmark_section({"landmark_check": out}))
+    assert _landmark_section({"landmark_check": None}) == []
