@@ -248,9 +248,12 @@ def test_the_landmarks_name_what_the_skin_cannot_show_on_febio_truth(slice_work,
     subject, truth, _ = make("small-003", slice_work / physics / "small-003")
     sub = read_subject(subject)
     run_dir = tmp_path / "run"
-    run_subject(subject, suite_config("truth_labels", truth, list(sub.positions),
-                                      sub.reference, register={"require_fiducials": False}),
-                run_dir, progress=False)
+    cfg = suite_config("truth_labels", truth, list(sub.positions), sub.reference,
+                       register={"require_fiducials": False})
+    # the gland as its own region of the mesh (default off), so that the gland candidate
+    # exists: the matrix's gland rows are meshed so (bench/diagnosis_matrix.py)
+    cfg["mesh"]["keep_gland"] = expected == "regions:gland"
+    run_subject(subject, cfg, run_dir, progress=False)
     from breastmodel.diagnosis import answer, load_run, rank_candidates
 
     d = rank_candidates(load_run(run_dir), progress=False, work_dir=tmp_path / "evaluations")
