@@ -216,7 +216,7 @@ def test_a_candidate_whose_re_fit_does_not_lower_the_worst_mhd_is_not_confirmed(
     nothing."""
     from types import SimpleNamespace
 
-    import breastmodel.diagnosis.missing as M
+    import breastmodel.diagnosis.verify as V
 
     after = {"a": {"prone": 1.0, "supine_tilted": 1.12, "supine": 0.2},
              "b": {"prone": 0.9, "supine_tilted": 0.8, "supine": 2.0}}
@@ -226,15 +226,16 @@ def test_a_candidate_whose_re_fit_does_not_lower_the_worst_mhd_is_not_confirmed(
         refits.append(c.name)
         return {"mhd_mm": after[c.name], "evaluations": 3}
 
-    monkeypatch.setattr(M, "verify_effect", fake_verify)
+    monkeypatch.setattr(V, "verify_effect", fake_verify)
     ranking = [{"name": n, "significant": sig, "measurement": "", "estimate": {}}
                for n, sig in (("a", True), ("c", False), ("b", True))]
     cands = [SimpleNamespace(name=n) for n in "abc"]
     run = SimpleNamespace(config={}, model={})
-    M._verify_best(ranking, cands, run, [], ["prone", "supine_tilted"],
-                   ["prone", "supine", "supine_tilted"], None,
-                   base_mhd={"prone": 1.0, "supine_tilted": 1.10, "supine": 0.3},
-                   verify_top=1, verify_budget=4, progress=False)
+    lm = V.verify_best(ranking, cands, run, [], ["prone", "supine_tilted"],
+                       ["prone", "supine", "supine_tilted"], None, state={},
+                       base_mhd={"prone": 1.0, "supine_tilted": 1.10, "supine": 0.3},
+                       verify_top=1, verify_budget=4, progress=False)
+    assert lm is None  # a significant candidate is left: no landmark check
     assert refits == ["a", "b"]
     assert not ranking[0]["significant"] and ranking[2]["significant"]
     assert ranking[0]["unconfirmed"] == {"worst_mhd_before_mm": 1.10, "worst_mhd_after_mm": 1.12}
