@@ -59,16 +59,14 @@ def landmark_rms(errors: Mapping[str, Sequence[float]], positions: Sequence[str]
 def base_errors(problem, state: Mapping, positions: Sequence[str]) -> dict:
     """{position: each landmark's error, mm} of the fitted model's solution ``state``
     (``X`` and ``u`` per position)."""
-    from breastmodel.pipeline.scoring import predicted_landmarks
+    from breastmodel.pipeline.scoring import record_landmarks
 
-    out = {}
+    out: dict = {"landmark_errors_mm": {}, "landmarks_mm": {}}
     for p in positions:
-        if p not in state["u"]:
-            continue
-        lm = predicted_landmarks(problem, np.asarray(state["X"]) + np.asarray(state["u"][p]), p)
-        if lm is not None:
-            out[p] = np.linalg.norm(lm[1] - lm[2], axis=1).tolist()
-    return out
+        if p in state["u"]:
+            x = np.asarray(state["X"]) + np.asarray(state["u"][p])
+            record_landmarks(out, problem, x, p, ())
+    return out["landmark_errors_mm"]
 
 
 def check_landmarks(ranking: list, candidates, run, fitted, obj_pos, positions,
@@ -124,9 +122,8 @@ def check_landmarks(ranking: list, candidates, run, fitted, obj_pos, positions,
         return out
     best = min(ok, key=lambda x: x["rms_after_mm"])
     drop = before - best["rms_after_mm"]
-    physical = not next(r for r in ranking if r["name"] == best["name"])["measurement"]
-    if physical and drop >= max(LANDMARK_DROP * before, LANDMARK_MIN_MM):
-        entry = next(r for r in ranking if r["name"] == best["name"])
+    entry = next(r for r in tried if r["name"] == best["name"])
+    if not entry["measurement"] and drop >= max(LANDMARK_DROP * before, LANDMARK_MIN_MM):
         entry["significant"] = True
         entry["landmarks"] = {"rms_before_mm": before, "rms_after_mm": best["rms_after_mm"],
                               "others": [x for x in rows if x is not best]}
